@@ -1,0 +1,55 @@
+//! The command line: clap-derived raw flags, and their conversion into validated settings.
+//! Commands never see a raw flag that has not been checked here.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+use crate::error::{Error, Result};
+
+/// Multiple-scattering relighting of OpenVDB fog volumes.
+#[derive(Debug, Parser)]
+#[command(name = "vscatter", version, about, propagate_version = true)]
+pub struct Cli {
+    #[command(flatten)]
+    pub global: GlobalArgs,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Flags every command takes.
+#[derive(Debug, Args)]
+pub struct GlobalArgs {
+    /// Worker threads (default: all cores, or SLURM_CPUS_PER_TASK when set).
+    #[arg(long, global = true, value_name = "N")]
+    pub threads: Option<usize>,
+    /// No progress bars.
+    #[arg(long, global = true)]
+    pub quiet: bool,
+    /// Print a JSON line of timings and counts when done.
+    #[arg(long, global = true)]
+    pub stats: bool,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {}
+
+impl GlobalArgs {
+    /// The worker thread count: `--threads`, else `SLURM_CPUS_PER_TASK`, else every core.
+    pub fn thread_count(&self) -> Result<usize> {
+        if let Some(n) = self.threads {
+            if n == 0 {
+                return Err(Error::usage("--threads must be at least 1"));
+            }
+            return Ok(n);
+        }
+        if let Ok(s) = std::env::var("SLURM_CPUS_PER_TASK") {
+            if let Ok(n) = s.trim().parse::<usize>() {
+                if n > 0 {
+                    return Ok(n);
+                }
+            }
+        }
+        Ok(std::thread::available_parallelism().map_or(1, |n| n.get()))
+    }
+}

@@ -1,0 +1,19 @@
+//! vscatter: read sparse OpenVDB fog volumes, bake a light-independent spherical-harmonic transfer
+//! with multiple scattering, and relight it with any HDR environment.
+
+pub mod cli;
+pub mod error;
+
+pub use error::{Error, Result};
+
+use cli::{Cli, Command};
+
+/// Runs one command line; the binary turns the result into an exit code.
+pub fn run(cli: Cli) -> Result<()> {
+    let threads = cli.global.thread_count()?;
+    // A second initialisation (tests that call `run` twice in one process) keeps the first pool.
+    let _ = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build_global();
+    match cli.command {}
+}
