@@ -32,7 +32,22 @@ pub struct GlobalArgs {
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {}
+pub enum Command {
+    /// Describe a VDB file: grids, types, transforms, bounding boxes, active voxels, tiles, memory.
+    Info(InfoArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// The file to describe (.vdb).
+    pub file: PathBuf,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// Describe only this grid, as the density that `render` would read (it must be scalar).
+    #[arg(long, value_name = "NAME")]
+    pub grid: Option<String>,
+}
 
 impl GlobalArgs {
     /// The worker thread count: `--threads`, else `SLURM_CPUS_PER_TASK`, else every core.

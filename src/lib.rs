@@ -3,6 +3,8 @@
 
 pub mod cli;
 pub mod error;
+pub mod info;
+pub mod volume;
 
 pub use error::{Error, Result};
 
@@ -15,5 +17,7 @@ pub fn run(cli: Cli) -> Result<()> {
     let _ = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build_global();
-    match cli.command {}
+    match cli.command {
+        Command::Info(args) => info::run(&args),
+    }
 }

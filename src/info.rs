@@ -1,0 +1,196 @@
+//! `vscatter info`: what `vdb_print -l` tells a user, for every grid of a VDB file — as text for
+//! people or JSON for scripts and tests.
+
+use std::io::Write;
+
+use serde_json::{json, Value};
+
+use crate::cli::InfoArgs;
+use crate::error::{Error, Result};
+use crate::volume::vdb::{GridInfo, ValueKind, VdbFile};
+use crate::volume::SparseGrid;
+
+/// Runs `vscatter info`.
+pub fn run(args: &InfoArgs) -> Result<()> {
+    let vdb = VdbFile::open(&args.file)?;
+    let chosen = match &args.grid {
+        Some(name) => vec![vdb.choose_grid(Some(name))?],
+        None => (0..vdb.grids.len()).collect(),
+    };
+    let mut grids = Vec::new();
+    for i in chosen {
+        let g = &vdb.grids[i];
+        let tree = match g.kind {
+            ValueKind::Readable { .. } => Some(vdb.read_grid(i)?),
+            ValueKind::Unsupported => None,
+        };
+        grids.push(grid_json(g, tree.as_ref()));
+    }
+    let report = json!({
+        "file": args.file.display().to_string(),
+        "format_version": vdb.version,
+        "library_version": format!("{}.{}", vdb.library.0, vdb.library.1),
+        "grids": grids,
+    });
+    let text = if args.json {
+        format!("{report:#}\n")
+    } else {
+        render_text(&report)
+    };
+    std::io::stdout()
+        .lock()
+        .write_all(text.as_bytes())
+        .map_err(|e| Error::io("<stdout>", e))
+}
+
+fn grid_json(g: &GridInfo, tree: Option<&SparseGrid>) -> Value {
+    let t = &g.transform;
+    let mut v = json!({
+        "name": g.name,
+        "value_type": g.value_type,
+        "grid_type": g.grid_type,
+        "half": g.half,
+        "class": g.class,
+        "instance_of": g.instance_of,
+        "compression": g.compression_name(),
+        "map_type": g.map_type,
+        "voxel_size": t.voxel_size().to_array(),
+        "scale": t.scale.to_array(),
+        "translation": t.translation.to_array(),
+    });
+    let Some(tree) = tree else {
+        v["note"] = json!("not read: this value type is not a volume");
+        return v;
+    };
+    let bbox = tree.active_bbox();
+    let stats = tree.value_stats();
+    // Vectors are read as their length: a range of lengths is meaningful, a sum is not.
+    let scalar = g.is_scalar();
+    let extra = json!({
+        "active_voxels": tree.active_voxels(),
+        "tiles": tree.tile_count(),
+        "leaves": tree.leaf_count(),
+        "bbox_min": bbox.map(|b| b.0.to_array()),
+        "bbox_max": bbox.map(|b| b.1.to_array()),
+        "background": tree.background,
+        "value_min": stats.map(|s| s.min),
+        "value_max": stats.map(|s| s.max),
+        "value_sum": stats.filter(|_| scalar).map(|s| s.sum),
+        "value_range_of": if scalar { "values" } else { "vector lengths" },
+        "memory_bytes": tree.memory_bytes(),
+        "file_voxel_count": g.file_voxel_count,
+    });
+    if let (Value::Object(a), Value::Object(b)) = (&mut v, extra) {
+        a.extend(b);
+    }
+    v
+}
+
+fn human_bytes(n: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut x = n as f64;
+    let mut u = 0;
+    while x >= 1024.0 && u + 1 < UNITS.len() {
+        x /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{n} B")
+    } else {
+        format!("{x:.1} {}", UNITS[u])
+    }
+}
+
+fn vec3(v: &Value) -> String {
+    match v.as_array() {
+        Some(a) => {
+            let parts: Vec<String> = a.iter().map(|x| x.to_string()).collect();
+            format!("({})", parts.join(", "))
+        }
+        None => "-".into(),
+    }
+}
+
+fn render_text(r: &Value) -> String {
+    let grids = r["grids"].as_array().map_or(&[][..], |g| g.as_slice());
+    let mut out = format!(
+        "{}: OpenVDB file format {} (library {}), {} grid{}\n",
+        r["file"].as_str().unwrap_or_default(),
+        r["format_version"],
+        r["library_version"].as_str().unwrap_or_default(),
+        grids.len(),
+        if grids.len() == 1 { "" } else { "s" }
+    );
+    for g in grids {
+        let s = |k: &str| g[k].as_str().unwrap_or("-").to_string();
+        let half = if g["half"].as_bool() == Some(true) {
+            " (half)"
+        } else {
+            ""
+        };
+        out += &format!(
+            "\n{}  {}{}  {}  [{}]\n",
+            s("name"),
+            s("value_type"),
+            half,
+            s("class"),
+            s("compression")
+        );
+        if let Some(p) = g["instance_of"].as_str() {
+            out += &format!("  instance of {p}\n");
+        }
+        out += &format!(
+            "  transform   {}, voxel size {}, translation {}\n",
+            s("map_type"),
+            vec3(&g["voxel_size"]),
+            vec3(&g["translation"])
+        );
+        if let Some(note) = g["note"].as_str() {
+            out += &format!("  {note}\n");
+            continue;
+        }
+        match (g["bbox_min"].as_array(), g["bbox_max"].as_array()) {
+            (Some(lo), Some(hi)) => {
+                let dims: Vec<String> = lo
+                    .iter()
+                    .zip(hi)
+                    .map(|(a, b)| {
+                        (b.as_i64().unwrap_or(0) - a.as_i64().unwrap_or(0) + 1).to_string()
+                    })
+                    .collect();
+                out += &format!(
+                    "  bbox        {} -> {}  ({} voxels)\n",
+                    vec3(&g["bbox_min"]),
+                    vec3(&g["bbox_max"]),
+                    dims.join(" x ")
+                );
+            }
+            _ => out += "  bbox        empty\n",
+        }
+        out += &format!(
+            "  active      {} voxels in {} leaves and {} tiles\n",
+            g["active_voxels"], g["leaves"], g["tiles"]
+        );
+        if !g["value_min"].is_null() {
+            out += &format!(
+                "  {:<11} {} .. {}",
+                if s("value_range_of") == "values" {
+                    "values"
+                } else {
+                    "|vectors|"
+                },
+                g["value_min"],
+                g["value_max"]
+            );
+            if !g["value_sum"].is_null() {
+                out += &format!("  (sum {})", g["value_sum"]);
+            }
+            out += "\n";
+        }
+        out += &format!(
+            "  memory      {}\n",
+            human_bytes(g["memory_bytes"].as_u64().unwrap_or(0))
+        );
+    }
+    out
+}

@@ -1,0 +1,6 @@
+//! Volumes: the OpenVDB reader and the sparse grid it decodes into.
+
+pub mod sparse;
+pub mod vdb;
+
+pub use sparse::{SparseGrid, TileLevel, Transform};
