@@ -1,0 +1,195 @@
+//! The sparse transfer grid: transfer voxels at 1/K of the density resolution, allocated only where
+//! the density is active within a voxel's footprint plus a one-voxel apron, grouped in 4³ tiles in a
+//! `hashbrown` map. Per-voxel data (SH coefficients, radiance) lives in flat arrays indexed by the
+//! voxel's slot; slots are numbered tile by tile, so each tile's coefficients are contiguous.
+//!
+//! Transfer voxel `a` sits at density index point `K·a` and its footprint is the density voxels
+//! nearest to it, `round(i / K) = a`. Radiance at a density index point `p` is trilinear between the
+//! eight transfer voxels around `p / K`; the apron makes all eight exist wherever density is active.
+
+use glam::{IVec3, Vec3};
+use hashbrown::HashMap;
+
+use crate::volume::sparse::{slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
+
+/// log2 of a tile's edge in transfer voxels: 4³ = 64 voxels, one 64-bit occupancy word.
+pub const TILE_LOG2: i32 = 2;
+const TILE_DIM: i32 = 1 << TILE_LOG2;
+const TILE_VOXELS: usize = 1 << (3 * TILE_LOG2);
+/// Marks a tile position with no transfer voxel.
+const EMPTY: u32 = u32::MAX;
+
+/// Which transfer voxels exist and where their data lives.
+#[derive(Clone)]
+pub struct TransferLayout {
+    /// Density voxels per transfer voxel along each axis.
+    pub k: i32,
+    /// Per tile (key `voxel >> TILE_LOG2`), the slot of each of its 64 voxels or `EMPTY`.
+    tiles: HashMap<IVec3, Box<[u32; TILE_VOXELS]>>,
+    /// The transfer-voxel coordinate of every slot, tile by tile.
+    voxels: Vec<IVec3>,
+}
+
+fn tile_local(v: IVec3) -> usize {
+    let l = v & (TILE_DIM - 1);
+    ((l.x << (2 * TILE_LOG2)) | (l.y << TILE_LOG2) | l.z) as usize
+}
+
+impl TransferLayout {
+    /// The transfer voxels for `density` at 1/`k` resolution: every footprint holding an active
+    /// density voxel or tile, dilated by one voxel in all 26 directions.
+    pub fn build(density: &SparseGrid, k: i32) -> TransferLayout {
+        let to_transfer = |i: i32| (i + k / 2).div_euclid(k);
+        let mut core: hashbrown::HashSet<IVec3> = hashbrown::HashSet::new();
+        for leaf in density.leaves() {
+            for slot in 0..LEAF_VOXELS {
+                if leaf.is_active(slot) && leaf.values[slot] > 0.0 {
+                    let p = leaf.origin + slot_offset(slot);
+                    core.insert(IVec3::new(
+                        to_transfer(p.x),
+                        to_transfer(p.y),
+                        to_transfer(p.z),
+                    ));
+                }
+            }
+        }
+        for level in TileLevel::ALL {
+            for (origin, value) in density.tiles(level) {
+                if value <= 0.0 {
+                    continue;
+                }
+                // A tile covers a box of transfer voxels: visit the box, not the tile's voxels.
+                let far = origin.as_i64vec3() + glam::I64Vec3::splat(level.dim() - 1);
+                let far = far
+                    .min(glam::I64Vec3::splat(i32::MAX as i64 - k as i64))
+                    .as_ivec3();
+                let (lo, hi) = (origin.map(to_transfer), far.map(to_transfer));
+                for x in lo.x..=hi.x {
+                    for y in lo.y..=hi.y {
+                        for z in lo.z..=hi.z {
+                            core.insert(IVec3::new(x, y, z));
+                        }
+                    }
+                }
+            }
+        }
+        let mut all: hashbrown::HashSet<IVec3> = hashbrown::HashSet::with_capacity(core.len() * 2);
+        for v in &core {
+            for n in 0..27 {
+                all.insert(*v + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1));
+            }
+        }
+        // Slots tile by tile, in a fixed order, so a bake is deterministic and tiles contiguous.
+        let mut voxels: Vec<IVec3> = all.into_iter().collect();
+        voxels.sort_unstable_by_key(|v| ((*v >> TILE_LOG2).to_array(), tile_local(*v)));
+        let mut tiles: HashMap<IVec3, Box<[u32; TILE_VOXELS]>> = HashMap::new();
+        for (slot, v) in voxels.iter().enumerate() {
+            let tile = tiles
+                .entry(*v >> TILE_LOG2)
+                .or_insert_with(|| Box::new([EMPTY; TILE_VOXELS]));
+            tile[tile_local(*v)] = slot as u32;
+        }
+        TransferLayout { k, tiles, voxels }
+    }
+
+    /// Number of transfer voxels.
+    pub fn len(&self) -> usize {
+        self.voxels.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.voxels.is_empty()
+    }
+
+    pub fn tile_count(&self) -> usize {
+        self.tiles.len()
+    }
+
+    /// Transfer-voxel coordinates, by slot.
+    pub fn voxels(&self) -> &[IVec3] {
+        &self.voxels
+    }
+
+    /// The slot of transfer voxel `v`, if it exists.
+    #[inline]
+    pub fn slot(&self, v: IVec3) -> Option<usize> {
+        let s = self.tiles.get(&(v >> TILE_LOG2))?[tile_local(v)];
+        (s != EMPTY).then_some(s as usize)
+    }
+
+    /// Density index-space position of transfer voxel `v`.
+    pub fn position(&self, v: IVec3) -> Vec3 {
+        (v * self.k).as_vec3()
+    }
+
+    /// Bytes of the layout itself (not of the per-voxel data).
+    pub fn memory_bytes(&self) -> usize {
+        self.tiles.capacity() * (std::mem::size_of::<(IVec3, Box<[u32; TILE_VOXELS]>)>() + 1)
+            + self.tiles.len() * TILE_VOXELS * 4
+            + self.voxels.capacity() * std::mem::size_of::<IVec3>()
+    }
+
+    /// The eight transfer voxels around density index point `p` with their trilinear weights;
+    /// a missing voxel gets slot `None` (its data reads as zero).
+    #[inline]
+    pub fn corners(&self, p: Vec3) -> [(Option<usize>, f32); 8] {
+        let q = p / self.k as f32;
+        let base = q.floor();
+        let f = q - base;
+        let b = base.as_ivec3();
+        std::array::from_fn(|n| {
+            let c = IVec3::new((n >> 2) as i32 & 1, (n >> 1) as i32 & 1, n as i32 & 1);
+            let w = |bit: i32, t: f32| if bit == 1 { t } else { 1.0 - t };
+            (self.slot(b + c), w(c.x, f.x) * w(c.y, f.y) * w(c.z, f.z))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::Transform;
+
+    #[test]
+    fn footprint_and_apron() {
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        let mut values = [0.0; LEAF_VOXELS];
+        let mut mask = [0u64; 8];
+        // One active voxel at index (3, 0, 0): nearest transfer voxel at K=6 is round(3/6) = 1
+        // (3 + 3).div_euclid(6) = 1, so the core is (1,0,0) and the apron 3×3×3 around it.
+        let s = crate::volume::sparse::Leaf::slot(IVec3::new(3, 0, 0));
+        mask[s >> 6] |= 1 << (s & 63);
+        values[s] = 1.0;
+        g.insert_leaf(IVec3::ZERO, mask, values);
+        let layout = TransferLayout::build(&g, 6);
+        assert_eq!(layout.len(), 27);
+        assert!(layout.slot(IVec3::new(1, 0, 0)).is_some());
+        assert!(layout.slot(IVec3::new(0, -1, 1)).is_some());
+        assert!(layout.slot(IVec3::new(3, 0, 0)).is_none());
+        // Every point near the active voxel finds all eight interpolation corners.
+        for p in [Vec3::new(2.5, 0.4, -0.5), Vec3::new(3.5, 0.0, 0.0)] {
+            assert!(layout.corners(p).iter().all(|(s, _)| s.is_some()));
+        }
+        let w: f32 = layout
+            .corners(Vec3::new(4.0, 1.0, 2.0))
+            .iter()
+            .map(|c| c.1)
+            .sum();
+        assert!((w - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn tiles_are_not_expanded_voxel_by_voxel() {
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        g.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
+        let layout = TransferLayout::build(&g, 8);
+        // Index 0..127 maps to transfer voxels 0..16 (round(127/8) = 16), plus the apron.
+        assert_eq!(layout.len(), 19usize.pow(3));
+        let slots: Vec<usize> = layout
+            .voxels()
+            .iter()
+            .map(|v| layout.slot(*v).unwrap())
+            .collect();
+        assert!(slots.iter().enumerate().all(|(i, s)| i == *s));
+    }
+}
