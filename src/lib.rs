@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod error;
+pub mod sh;
 
 pub use error::{Error, Result};
 
