@@ -1,8 +1,10 @@
 //! vscatter: read sparse OpenVDB fog volumes, bake a light-independent spherical-harmonic transfer
 //! with multiple scattering, and relight it with any HDR environment.
 
+pub mod atomic;
 pub mod cli;
 pub mod error;
+pub mod image;
 pub mod sh;
 
 pub use error::{Error, Result};

@@ -125,7 +125,13 @@ static RECURRENCE: LazyLock<Recurrence> = LazyLock::new(|| {
 
 /// Calls `emit(l, q)` for l = m … bands−1 with q = N_l^m·P_l^m(t)/sin^mθ, t = cosθ.
 #[inline(always)]
-fn legendre_column(rec: &Recurrence, t: f64, m: usize, bands: usize, mut emit: impl FnMut(usize, f64)) {
+fn legendre_column(
+    rec: &Recurrence,
+    t: f64,
+    m: usize,
+    bands: usize,
+    mut emit: impl FnMut(usize, f64),
+) {
     let mut q0 = rec.diag[m];
     emit(m, q0);
     if m + 1 >= bands {
@@ -409,7 +415,13 @@ impl RowScratch {
     }
 
     /// The row's Fourier sums. The innermost loop runs over m on contiguous tables so it vectorises.
-    fn fourier<const N: usize>(&mut self, line: &[[f32; N]], bands: usize, cos: &[f64], sin: &[f64]) {
+    fn fourier<const N: usize>(
+        &mut self,
+        line: &[[f32; N]],
+        bands: usize,
+        cos: &[f64],
+        sin: &[f64],
+    ) {
         self.re.iter_mut().for_each(|v| *v = 0.0);
         self.im.iter_mut().for_each(|v| *v = 0.0);
         for (col, px) in line.iter().enumerate() {
@@ -521,7 +533,12 @@ mod tests {
             0.25 * (15.0 / PI).sqrt() * (z * z - x * x),
         ];
         for i in 0..9 {
-            assert!((y[i] - expect[i]).abs() < 1e-12, "Y{i}: {} vs {}", y[i], expect[i]);
+            assert!(
+                (y[i] - expect[i]).abs() < 1e-12,
+                "Y{i}: {} vs {}",
+                y[i],
+                expect[i]
+            );
         }
     }
 
@@ -608,7 +625,9 @@ mod tests {
         let mut s = seed;
         (0..coeff_count(bands))
             .map(|_| {
-                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
             })
             .collect()
@@ -625,7 +644,8 @@ mod tests {
         let bands = 6;
         let (w, h) = (2048, 1024);
         let c = random_coeffs(bands, 7);
-        let sh = Sh::<1>::project_latlong(w, h, bands, &map_of(w, h, |d| eval_coeffs(&c, bands, d)));
+        let sh =
+            Sh::<1>::project_latlong(w, h, bands, &map_of(w, h, |d| eval_coeffs(&c, bands, d)));
         for (got, want) in sh.coeffs.iter().zip(&c) {
             assert!((got[0] as f64 - want).abs() < 1e-4, "{} vs {want}", got[0]);
         }
@@ -653,11 +673,16 @@ mod tests {
         for (t, w) in gauss_legendre(bands + 1) {
             for k in 0..n_phi {
                 let d = direction(t.acos(), 2.0 * PI * k as f64 / n_phi as f64);
-                integral += w * 2.0 * PI / n_phi as f64 * eval_coeffs(&f, bands, d) * eval_coeffs(&g, bands, d);
+                integral += w * 2.0 * PI / n_phi as f64
+                    * eval_coeffs(&f, bands, d)
+                    * eval_coeffs(&g, bands, d);
             }
         }
         let dot: f64 = f.iter().zip(&g).map(|(a, b)| a * b).sum();
-        assert!((integral - dot).abs() < 1e-5 * dot.abs(), "{integral} vs {dot}");
+        assert!(
+            (integral - dot).abs() < 1e-5 * dot.abs(),
+            "{integral} vs {dot}"
+        );
     }
 
     #[test]
@@ -667,14 +692,18 @@ mod tests {
         let mut s = 99u64;
         let map: Vec<[f32; 1]> = (0..w * h)
             .map(|_| {
-                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 [(s >> 40) as f32 / (1u64 << 24) as f32]
             })
             .collect();
         let k = 37; // columns
         let alpha = 2.0 * PI * k as f64 / w as f64;
         // f'(θ, φ) = f(θ, φ + α): pixel (col) of the rotated map is pixel (col + k) of the original.
-        let rotated: Vec<[f32; 1]> = (0..w * h).map(|i| map[(i / w) * w + (i % w + k) % w]).collect();
+        let rotated: Vec<[f32; 1]> = (0..w * h)
+            .map(|i| map[(i / w) * w + (i % w + k) % w])
+            .collect();
         let mut by_coeffs = Sh::<1>::project_latlong(w, h, bands, &map);
         by_coeffs.rotate_y(alpha);
         let by_map = Sh::<1>::project_latlong(w, h, bands, &rotated);
