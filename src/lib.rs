@@ -6,6 +6,7 @@ pub mod cli;
 pub mod error;
 pub mod image;
 pub mod info;
+pub mod progress;
 pub mod sh;
 pub mod transfer;
 pub mod volume;

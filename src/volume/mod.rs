@@ -1,6 +1,7 @@
 //! Volumes: the OpenVDB reader and the sparse grid it decodes into.
 
 pub mod sparse;
+pub mod transmittance;
 pub mod vdb;
 
 pub use sparse::{SparseGrid, TileLevel, Transform};
