@@ -1,6 +1,8 @@
 //! The integration tests: one binary that runs the real `vscatter` program in temporary
 //! directories, plus cross-checks of the library against independent references.
 
+#[path = "cli/bake.rs"]
+mod bake;
 #[path = "cli/vdb.rs"]
 mod vdb;
 
