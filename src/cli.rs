@@ -32,7 +32,38 @@ pub struct GlobalArgs {
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {}
+pub enum Command {
+    /// Project an environment map onto SH and write its reconstruction (thesis fig. 6.4).
+    Env(EnvArgs),
+}
+
+/// `vscatter env ENV -o RECON.(exr|png)`.
+#[derive(Debug, Args)]
+pub struct EnvArgs {
+    /// Latlong environment: an OpenEXR or Radiance .hdr file, or `sky` for the built-in sky.
+    #[arg(value_name = "ENV")]
+    pub env: String,
+    /// Where to write the reconstruction, the same size as the input (.exr linear, .png tonemapped).
+    #[arg(short, long, value_name = "RECON")]
+    pub output: PathBuf,
+    /// SH bands (bands² coefficients), 1 to 20.
+    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
+    pub bands: usize,
+    /// Windowing of the coefficients against ringing (thesis eq. 6.1).
+    #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
+    pub window: crate::sh::Window,
+    /// Exposure in stops for PNG output.
+    #[arg(
+        long,
+        value_name = "EV",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    pub exposure: f32,
+    /// Also write the input map itself (after clamping bad pixels), for side-by-side figures.
+    #[arg(long, value_name = "PATH")]
+    pub original: Option<PathBuf>,
+}
 
 impl GlobalArgs {
     /// The worker thread count: `--threads`, else `SLURM_CPUS_PER_TASK`, else every core.

@@ -3,6 +3,8 @@
 
 pub mod atomic;
 pub mod cli;
+pub mod env;
+pub mod env_cmd;
 pub mod error;
 pub mod image;
 pub mod sh;
@@ -18,5 +20,7 @@ pub fn run(cli: Cli) -> Result<()> {
     let _ = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build_global();
-    match cli.command {}
+    match cli.command {
+        Command::Env(args) => env_cmd::run(&args),
+    }
 }
