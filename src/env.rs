@@ -261,7 +261,7 @@ fn read_exr(path: &Path) -> Result<Pixels> {
             Error::io(path, io)
         }
         exr::error::Error::Io(_) => Error::format(path, "truncated OpenEXR file"),
-        other => Error::format(path, format!("unreadable OpenEXR file: {other}")),
+        other => Error::format(path, format!("unreadable OpenEXR file (truncated or corrupt?): {other}")),
     };
     // Check the size in the header before the pixel reader allocates anything.
     let meta = MetaData::read_from_file(path, false).map_err(bad)?;

@@ -1,0 +1,223 @@
+//! Integration tests: run the real `vscatter` binary, in a temporary directory, on the fixtures and
+//! on deliberately broken inputs. Every failure must be one clear line and the right exit code.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Runs `vscatter ARGS…` in the current directory.
+fn vscatter(args: &[&str]) -> Output {
+    vscatter_in(Path::new("."), args)
+}
+
+/// Runs `vscatter ARGS…` with `dir` as working directory.
+fn vscatter_in(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vscatter"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("run vscatter")
+}
+
+fn fixture(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("fixtures")
+        .join(rel)
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A failure: the given exit code, one `vscatter: error:` line on stderr, never a panic.
+fn assert_clean_failure(out: &Output, code: i32, mentions: &str) {
+    let err = stderr(out);
+    assert_eq!(out.status.code(), Some(code), "stderr: {err}");
+    assert!(!err.contains("panicked"), "panic: {err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "not one line: {err}");
+    assert!(
+        err.contains(mentions),
+        "{err:?} should mention {mentions:?}"
+    );
+}
+
+#[test]
+fn env_reconstructs_a_fixture() {
+    let dir = tempfile::tempdir().unwrap();
+    let sky = fixture("env/sky_sun.exr");
+    let out = vscatter_in(
+        dir.path(),
+        &[
+            "env",
+            sky.to_str().unwrap(),
+            "-o",
+            "recon.exr",
+            "--bands",
+            "5",
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("relative L2 error"), "{stdout}");
+    assert!(
+        stdout
+            .lines()
+            .filter(|l| l.trim_start().starts_with('4'))
+            .count()
+            >= 1,
+        "{stdout}"
+    );
+    let recon = exr::prelude::read_first_rgba_layer_from_file(
+        dir.path().join("recon.exr"),
+        |size, _| size,
+        |_, _, _: (f32, f32, f32, f32)| (),
+    )
+    .unwrap();
+    assert_eq!(recon.layer_data.size, exr::math::Vec2(256, 128));
+    // Only the output: no temporary file left behind.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+}
+
+#[test]
+fn env_builtin_sky_to_png_with_window() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = vscatter_in(
+        dir.path(),
+        &[
+            "env",
+            "sky",
+            "-o",
+            "sky.png",
+            "--window",
+            "hamming",
+            "--original",
+            "orig.png",
+        ],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    for name in ["sky.png", "orig.png"] {
+        let bytes = std::fs::read(dir.path().join(name)).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+    }
+}
+
+#[test]
+fn env_reads_radiance_hdr() {
+    let dir = tempfile::tempdir().unwrap();
+    let hdr = fixture("env/studio.hdr");
+    let out = vscatter_in(dir.path(), &["env", hdr.to_str().unwrap(), "-o", "r.exr"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+}
+
+#[test]
+fn missing_env_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = vscatter_in(dir.path(), &["env", "nope.exr", "-o", "r.exr"]);
+    assert_clean_failure(&out, 1, "nope.exr");
+    assert!(!dir.path().join("r.exr").exists());
+}
+
+#[test]
+fn non_image_env_file() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("notes.exr"),
+        "just some text, not an image\n",
+    )
+    .unwrap();
+    let out = vscatter_in(dir.path(), &["env", "notes.exr", "-o", "r.exr"]);
+    assert_clean_failure(&out, 1, "notes.exr");
+}
+
+#[test]
+fn truncated_exr_at_many_lengths() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(fixture("env/studio.exr")).unwrap();
+    // Inside the magic, the header, the offset table and the pixel data.
+    for len in [2, 30, 200, 400, 1000, bytes.len() / 2, bytes.len() - 1] {
+        std::fs::write(dir.path().join("cut.exr"), &bytes[..len]).unwrap();
+        let out = vscatter_in(dir.path(), &["env", "cut.exr", "-o", "r.exr"]);
+        assert_clean_failure(&out, 1, "cut.exr");
+        assert!(!dir.path().join("r.exr").exists());
+    }
+}
+
+#[test]
+fn truncated_hdr() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(fixture("env/studio.hdr")).unwrap();
+    for len in [5, 40, bytes.len() / 2] {
+        std::fs::write(dir.path().join("cut.hdr"), &bytes[..len]).unwrap();
+        let out = vscatter_in(dir.path(), &["env", "cut.hdr", "-o", "r.exr"]);
+        assert_clean_failure(&out, 1, "cut.hdr");
+    }
+}
+
+#[test]
+fn huge_hdr_header_is_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("huge.hdr"),
+        "#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 1000000 +X 1000000\n",
+    )
+    .unwrap();
+    let out = vscatter_in(dir.path(), &["env", "huge.hdr", "-o", "r.exr"]);
+    assert_clean_failure(&out, 1, "huge.hdr");
+}
+
+#[test]
+fn nan_and_inf_pixels_warn_and_clamp() {
+    use exr::prelude::write_rgb_file;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.exr");
+    write_rgb_file(&path, 16, 8, |x, y| match (x, y) {
+        (0, 0) => (f32::NAN, 1.0, 1.0),
+        (1, 0) => (f32::INFINITY, 1.0, 1.0),
+        (2, 0) => (-3.0, 1.0, 1.0),
+        _ => (1.0, 1.0, 1.0),
+    })
+    .unwrap();
+    let out = vscatter_in(
+        dir.path(),
+        &["env", "bad.exr", "-o", "r.exr", "--bands", "3"],
+    );
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("warning") && err.contains("bad.exr"), "{err}");
+    assert_eq!(err.matches("warning").count(), 1, "warn once: {err}");
+    assert!(!err.contains("panicked"));
+}
+
+#[test]
+fn band_counts_out_of_range_are_usage_errors() {
+    let sky = fixture("env/constant.exr");
+    for bands in ["0", "100", "21"] {
+        let out = vscatter(&[
+            "env",
+            sky.to_str().unwrap(),
+            "-o",
+            "never-written.exr",
+            "--bands",
+            bands,
+        ]);
+        assert_clean_failure(&out, 2, "--bands");
+    }
+    assert!(!Path::new("never-written.exr").exists());
+}
+
+#[test]
+fn unknown_output_extension_is_a_usage_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = vscatter_in(dir.path(), &["env", "sky", "-o", "r.jpg"]);
+    assert_clean_failure(&out, 2, "r.jpg");
+}
+
+#[test]
+fn unwritable_output_names_the_file_and_leaves_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = vscatter_in(
+        dir.path(),
+        &["env", "sky", "-o", "no/such/dir/r.exr", "--bands", "2"],
+    );
+    assert_clean_failure(&out, 1, "r.exr");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
