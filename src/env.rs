@@ -194,6 +194,13 @@ impl Environment {
         out
     }
 
+    /// [`Environment::lookup`] of the map turned by `angle` radians about +Y, with the convention
+    /// of [`crate::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
+    /// background matches rotated SH lighting.
+    pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
+        self.lookup(sh::rotate_dir_y(dir, -angle))
+    }
+
     /// SH coefficients of the map (pixel-centre values times exact pixel solid angles).
     /// Panics if `bands > sh::MAX_BANDS`; callers validate with [`sh::check_bands`].
     pub fn project(&self, bands: usize) -> ShRgb {
@@ -261,7 +268,10 @@ fn read_exr(path: &Path) -> Result<Pixels> {
             Error::io(path, io)
         }
         exr::error::Error::Io(_) => Error::format(path, "truncated OpenEXR file"),
-        other => Error::format(path, format!("unreadable OpenEXR file (truncated or corrupt?): {other}")),
+        other => Error::format(
+            path,
+            format!("unreadable OpenEXR file (truncated or corrupt?): {other}"),
+        ),
     };
     // Check the size in the header before the pixel reader allocates anything.
     let meta = MetaData::read_from_file(path, false).map_err(bad)?;
@@ -420,6 +430,27 @@ mod tests {
     }
 
     #[test]
+    fn rotated_lookup_agrees_with_rotated_coefficients() {
+        let env = Environment::load(&fixture("studio.exr")).unwrap();
+        let alpha = 1.3;
+        let sh0 = env.project(12);
+        let mut sh1 = sh0.clone();
+        sh1.rotate_y(alpha);
+        // Compare the band-limited versions: rotating the coefficients must equal looking the
+        // unrotated band-limited map up at the counter-rotated direction.
+        let d = sh::direction(1.2, 0.4);
+        let a = sh1.eval(d);
+        let b = sh0.eval(sh::rotate_dir_y(d, -alpha));
+        for k in 0..3 {
+            assert!((a[k] - b[k]).abs() < 1e-4 * (1.0 + b[k].abs()));
+        }
+        // And the map itself: the light at azimuth 60° (φ) appears at 60° − α after rotation.
+        let light = sh::direction((90.0f64 - 30.0).to_radians(), 60f64.to_radians());
+        let moved = sh::direction((90.0f64 - 30.0).to_radians(), 60f64.to_radians() - alpha);
+        assert!((env.lookup_rotated(moved, alpha)[0] - env.lookup(light)[0]).abs() < 1e-3);
+    }
+
+    #[test]
     fn bad_pixels_are_repaired_and_counted() {
         let px = vec![
             [f32::NAN, f32::INFINITY, -1.0],
@@ -512,9 +543,9 @@ mod tests {
         let env = Environment::load(&fixture("constant.exr")).unwrap();
         let c = env.pixels()[0];
         let sh = env.project(4);
-        for k in 0..3 {
-            let e0 = c[k] as f64 * (4.0 * PI).sqrt();
-            assert!((sh.coeffs[0][k] as f64 - e0).abs() < 1e-5 * e0);
+        for (got, value) in sh.coeffs[0].iter().zip(c) {
+            let e0 = value as f64 * (4.0 * PI).sqrt();
+            assert!((*got as f64 - e0).abs() < 1e-5 * e0);
         }
     }
 }

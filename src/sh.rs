@@ -439,6 +439,15 @@ impl RowScratch {
     }
 }
 
+/// Rotates `dir` about +Y by `angle` radians, right-handed (counter-clockwise seen from above):
+/// −Z turns towards −X. An environment turned by `--env-rotate α` sends radiance arriving from
+/// `dir` that the unrotated map sends from `rotate_dir_y(dir, −α)` (see [`Sh::rotate_y`]).
+pub fn rotate_dir_y(dir: [f64; 3], angle: f64) -> [f64; 3] {
+    let (s, c) = angle.sin_cos();
+    let [x, y, z] = dir;
+    [c * x + s * z, y, -s * x + c * z]
+}
+
 /// The unit direction of spherical angles (θ from +Y, φ per the latlong mapping).
 pub fn direction(theta: f64, phi: f64) -> [f64; 3] {
     let (st, ct) = theta.sin_cos();
@@ -721,6 +730,23 @@ mod tests {
         let k1 = (3.0 / (4.0 * PI)).sqrt() as f32;
         assert!((sh.eval([-1.0, 0.0, 0.0])[0] - k1).abs() < 1e-6);
         assert!(sh.eval([0.0, 0.0, -1.0])[0].abs() < 1e-6);
+    }
+
+    #[test]
+    fn rotated_coefficients_equal_lookup_at_counter_rotated_direction() {
+        let bands = 6;
+        let c = random_coeffs(bands, 5);
+        let mut sh = Sh::<1> {
+            bands,
+            coeffs: c.iter().map(|&v| [v as f32]).collect(),
+        };
+        let original = sh.clone();
+        let alpha = 0.7;
+        sh.rotate_y(alpha);
+        for d in [direction(0.3, 1.0), direction(2.0, 5.5), [0.0, 0.0, -1.0]] {
+            let want = original.eval(rotate_dir_y(d, -alpha))[0];
+            assert!((sh.eval(d)[0] - want).abs() < 1e-5, "{d:?}");
+        }
     }
 
     #[test]
