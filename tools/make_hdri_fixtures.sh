@@ -88,7 +88,9 @@ def render(w, h, fn):
 write_exr(f"{out}/constant.exr", np.ones((64, 128, 3)))
 
 # 2. sky_sun: blue gradient, dark ground, a small very bright warm sun (35° up, azimuth 180°:
-#    centred in the image so figures show it).
+#    centred in the image so figures show it). Its energy (≈ 7.7 per channel over 3.8e-3 sr) is
+#    ≈ 3.5× the dome's irradiance on a horizontal surface: a clear-day balance, and still ≈ 2000×
+#    the sky's radiance, the "single bright area" of thesis 6.5.2.
 def sky(d):
     y = d[..., 1:2]
     t = (1 - np.maximum(y, 0)) ** 3
@@ -97,7 +99,7 @@ def sky(d):
     c = np.array([0.16, 0.14, 0.12]) * (1 - s) + skyc * s
     sun = dir_of(35, 180)
     ang = np.arccos(np.clip(d @ sun, -1, 1))[..., None]
-    return c + (ang < np.radians(2.0)) * np.array([20000.0, 17500.0, 13500.0])
+    return c + (ang < np.radians(2.0)) * np.array([2000.0, 1750.0, 1350.0])
 write_exr(f"{out}/sky_sun.exr", render(256, 128, sky), half=True)
 
 # 3. split: warm white upper hemisphere, dark brown lower one, boundary exactly at the horizon.
