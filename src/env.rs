@@ -273,13 +273,15 @@ fn read_exr(path: &Path) -> Result<Pixels> {
             format!("unreadable OpenEXR file (truncated or corrupt?): {other}"),
         ),
     };
-    // Check the size in the header before the pixel reader allocates anything.
+    // Check the sizes in the headers before the pixel reader allocates anything; every part, since
+    // the reader takes the first one with R, G, B channels, which need not be the first.
     let meta = MetaData::read_from_file(path, false).map_err(bad)?;
-    let header = meta
-        .headers
-        .first()
-        .ok_or_else(|| Error::format(path, "OpenEXR file has no image part"))?;
-    check_size(path, header.layer_size.width(), header.layer_size.height())?;
+    if meta.headers.is_empty() {
+        return Err(Error::format(path, "OpenEXR file has no image part"));
+    }
+    for header in &meta.headers {
+        check_size(path, header.layer_size.width(), header.layer_size.height())?;
+    }
     let image = read_first_rgba_layer_from_file(
         path,
         |size, _| {

@@ -304,19 +304,22 @@ impl<const N: usize> Sh<N> {
                 let (theta, _, _) = latlong_row(row, height);
                 let mut legendre = vec![0.0; tri(bands, 0)];
                 legendre_row(theta.cos(), theta.sin(), bands, &mut legendre);
-                // re[m][c], im[m][c]: this row's amplitude of cos(mφ) and sin(mφ).
-                let mut re = vec![[0.0f64; N]; bands];
-                let mut im = vec![[0.0f64; N]; bands];
+                // This row's amplitude of cos(mφ) and sin(mφ), laid out [channel * bands + m] so
+                // the per-pixel sum over m below runs over contiguous memory.
+                let mut re = vec![0.0f64; N * bands];
+                let mut im = vec![0.0f64; N * bands];
                 for l in 0..bands {
                     for m in 0..=l {
                         let p = legendre[tri(l, m)];
                         for c in 0..N {
                             if m == 0 {
-                                re[0][c] += p * self.coeffs[index(l, 0)][c] as f64;
+                                re[c * bands] += p * self.coeffs[index(l, 0)][c] as f64;
                             } else {
                                 let p2 = std::f64::consts::SQRT_2 * p;
-                                re[m][c] += p2 * self.coeffs[index(l, m as isize)][c] as f64;
-                                im[m][c] += p2 * self.coeffs[index(l, -(m as isize))][c] as f64;
+                                re[c * bands + m] +=
+                                    p2 * self.coeffs[index(l, m as isize)][c] as f64;
+                                im[c * bands + m] +=
+                                    p2 * self.coeffs[index(l, -(m as isize))][c] as f64;
                             }
                         }
                     }
@@ -326,12 +329,13 @@ impl<const N: usize> Sh<N> {
                         &cos_tab[col * bands..][..bands],
                         &sin_tab[col * bands..][..bands],
                     );
-                    for c in 0..N {
-                        let mut v = 0.0;
+                    for (c, v) in px.iter_mut().enumerate() {
+                        let (rc, ic) = (&re[c * bands..][..bands], &im[c * bands..][..bands]);
+                        let mut sum = 0.0;
                         for m in 0..bands {
-                            v += re[m][c] * ct[m] + im[m][c] * st[m];
+                            sum += rc[m] * ct[m] + ic[m] * st[m];
                         }
-                        px[c] = v as f32;
+                        *v = sum as f32;
                     }
                 }
             });
