@@ -221,3 +221,32 @@ fn unwritable_output_names_the_file_and_leaves_nothing() {
     assert_clean_failure(&out, 1, "r.exr");
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
 }
+
+#[test]
+fn exr_without_rgb_channels_is_refused() {
+    use exr::prelude::*;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("lum.exr");
+    let y = AnyChannel::new("Y", FlatSamples::F32(vec![1.0; 8 * 4]));
+    let layer = Layer::new(
+        (8, 4),
+        LayerAttributes::default(),
+        Encoding::UNCOMPRESSED,
+        AnyChannels::sort(SmallVec::from_vec(vec![y])),
+    );
+    Image::from_layer(layer).write().to_file(&path).unwrap();
+    let out = vscatter_in(dir.path(), &["env", "lum.exr", "-o", "r.exr"]);
+    assert_clean_failure(&out, 1, "lum.exr");
+}
+
+#[test]
+fn tiny_maps_work() {
+    use exr::prelude::write_rgb_file;
+    let dir = tempfile::tempdir().unwrap();
+    write_rgb_file(dir.path().join("one.exr"), 1, 1, |_, _| (2.0, 2.0, 2.0)).unwrap();
+    let out = vscatter_in(
+        dir.path(),
+        &["env", "one.exr", "-o", "r.exr", "--bands", "20"],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+}
