@@ -295,8 +295,9 @@ fn read_exr(path: &Path) -> Result<Pixels> {
         },
     )
     .map_err(|e| match e {
-        exr::error::Error::NotSupported(msg) if msg.contains("channel") => {
-            Error::format(path, "OpenEXR file has no R, G, B layer")
+        // exr's words for "no part has the channels asked for".
+        exr::error::Error::Invalid(msg) if msg.contains("no layer") => {
+            Error::format(path, "OpenEXR file has no layer with R, G and B channels")
         }
         other => bad(other),
     })?;

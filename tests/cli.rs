@@ -237,6 +237,7 @@ fn exr_without_rgb_channels_is_refused() {
     Image::from_layer(layer).write().to_file(&path).unwrap();
     let out = vscatter_in(dir.path(), &["env", "lum.exr", "-o", "r.exr"]);
     assert_clean_failure(&out, 1, "lum.exr");
+    assert!(stderr(&out).contains("R, G and B"), "{}", stderr(&out));
 }
 
 #[test]
