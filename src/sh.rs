@@ -555,8 +555,8 @@ mod tests {
         }
     }
 
-    /// The basis sampled at pixel centres as a map with one channel per basis function would be
-    /// too big; instead project Y_j maps one at a time and take the worst Gram error.
+    /// Worst |Σ_pixels Yᵢ·Yⱼ·ΔΩ − δᵢⱼ| of the map quadrature on a 2H×H latlong: each Yⱼ is sampled
+    /// at the pixel centres and projected like an environment.
     fn pixel_quadrature_error(bands: usize, height: usize) -> f64 {
         let width = 2 * height;
         let n = coeff_count(bands);
