@@ -312,7 +312,11 @@ fn transport_chunk(
         if generations.is_none() {
             stats.energy_multiple += added;
             let total = stats.energy_single + stats.energy_multiple;
-            let r = if previous > 0.0 { added / previous } else { 0.0 };
+            let r = if previous > 0.0 {
+                added / previous
+            } else {
+                0.0
+            };
             stats.remaining = if r < 1.0 {
                 added * r / (1.0 - r) / total.max(f64::MIN_POSITIVE)
             } else {
@@ -350,7 +354,16 @@ pub fn bake_multiple(
     let rest: Vec<Vec<f32>> = chunks[1..]
         .par_iter()
         .map(|&(c0, w)| {
-            transport_chunk(&links, t_ri, coeffs, c0, w, medium.albedo, Some(stats.generations)).0
+            transport_chunk(
+                &links,
+                t_ri,
+                coeffs,
+                c0,
+                w,
+                medium.albedo,
+                Some(stats.generations),
+            )
+            .0
         })
         .collect();
     let mut f_ms = vec![0f32; n * coeffs];
@@ -374,7 +387,11 @@ mod tests {
     #[test]
     fn lattice_weights_are_voronoi_shares() {
         // Re-derive the shares by a (cos θ, φ) midpoint quadrature, nearest direction wins.
-        for kind in [LatticeKind::Faces, LatticeKind::FacesEdges, LatticeKind::All] {
+        for kind in [
+            LatticeKind::Faces,
+            LatticeKind::FacesEdges,
+            LatticeKind::All,
+        ] {
             let dirs = Directions::new(kind);
             let count = kind.directions();
             let units: Vec<Vec3> = dirs.offsets.iter().map(|d| unit(*d)).collect();
