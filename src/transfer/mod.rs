@@ -93,16 +93,22 @@ pub fn bake(
         seed: settings.seed,
         skip_empty: true,
     };
-    let t_ri = single::bake_single(density, &layout, medium, single, &bar);
+    let single = single::bake_single(density, &layout, medium, single, &bar);
     bar.finish_and_clear();
     stats.single_seconds = clock.elapsed().as_secs_f64();
 
     let clock = std::time::Instant::now();
     let f_ms = match settings.single_scatter {
-        true => vec![0.0; t_ri.len()],
+        true => vec![0.0; single.t_ri.len()],
         false => {
+            let first = lattice::Source {
+                t_ri: &single.t_ri,
+                gathered: &single.gathered,
+                coeffs,
+                medium,
+            };
             let (f_ms, lattice_stats) =
-                lattice::bake_multiple(density, &layout, medium, settings.lattice, &t_ri, coeffs);
+                lattice::bake_multiple(density, &layout, settings.lattice, &first);
             stats.lattice = Some(lattice_stats);
             f_ms
         }
@@ -112,7 +118,7 @@ pub fn bake(
         layout,
         bands: settings.bands,
         medium,
-        t_ri,
+        t_ri: single.t_ri,
         f_ms,
     };
     (transfer, stats)
