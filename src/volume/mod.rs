@@ -1,5 +1,6 @@
 //! Volumes: the OpenVDB reader and the sparse grid it decodes into.
 
+pub mod dda;
 pub mod sparse;
 pub mod vdb;
 
