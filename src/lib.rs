@@ -4,6 +4,7 @@
 pub mod cli;
 pub mod error;
 pub mod info;
+pub mod render;
 pub mod transfer;
 pub mod volume;
 
