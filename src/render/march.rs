@@ -19,13 +19,15 @@
 
 use std::ops::ControlFlow;
 
-use glam::{DVec3, Vec3};
+use glam::{DVec3, IVec3, Vec3};
 use rayon::prelude::*;
 
 use crate::render::camera::{hash_unit, pixel_offset, Camera, STREAM_STEP};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
 use crate::volume::dda::{clip_to_box, Occupancy};
+use crate::volume::sampler::BlockSampler;
+use crate::volume::sparse::corner;
 use crate::volume::SparseGrid;
 
 /// Stop marching when less than this fraction of the background still shows through: the rest of
@@ -40,27 +42,51 @@ const TILE: u32 = 32;
 
 /// The in-scattered radiance Ls at a point of the medium, direct and indirect parts.
 pub trait InScatter: Sync {
+    /// Per-ray scratch state (such as the last interpolation corners), fresh for every ray.
+    type Cache: Default;
     /// Ls at density index point `p`: ([direct RGB], [indirect RGB]).
-    fn radiance(&self, p: Vec3) -> [[f32; 3]; 2];
+    fn radiance(&self, p: Vec3, cache: &mut Self::Cache) -> [[f32; 3]; 2];
 }
 
-/// Ls interpolated trilinearly from the per-transfer-voxel radiance of [`crate::render::relight`].
+/// Ls interpolated trilinearly from the per-transfer-voxel radiance of [`crate::render::relight`],
+/// with the weights of [`TransferLayout::corners`].
 pub struct TransferRadiance<'a> {
     pub layout: &'a TransferLayout,
     pub radiance: &'a Radiance,
 }
 
+/// The slots of the eight transfer voxels around the last sample: a ray takes about 2K steps per
+/// transfer voxel, so the eight hash lookups are paid once per transfer cell, not per step.
+#[derive(Default)]
+pub struct CornerCache {
+    base: Option<IVec3>,
+    slots: [Option<usize>; 8],
+}
+
 impl InScatter for TransferRadiance<'_> {
+    type Cache = CornerCache;
+
     #[inline]
-    fn radiance(&self, p: Vec3) -> [[f32; 3]; 2] {
+    fn radiance(&self, p: Vec3, cache: &mut CornerCache) -> [[f32; 3]; 2] {
+        let q = p / self.layout.k as f32;
+        let base = q.floor();
+        let f = q - base;
+        let b = base.as_ivec3();
+        if cache.base != Some(b) {
+            cache.base = Some(b);
+            cache.slots = std::array::from_fn(|n| self.layout.slot(b + corner(n)));
+        }
         let mut out = [[0.0f32; 3]; 2];
-        for (slot, w) in self.layout.corners(p) {
+        for (n, slot) in cache.slots.iter().enumerate() {
             // A missing corner's data reads as zero; the apron makes that rare inside the medium.
-            if let Some(s) = slot {
+            if let Some(s) = *slot {
+                let c = corner(n);
+                let w = |bit: i32, t: f32| if bit == 1 { t } else { 1.0 - t };
+                let w = w(c.x, f.x) * w(c.y, f.y) * w(c.z, f.z);
                 let (d, i) = (self.radiance.direct[s], self.radiance.indirect[s]);
-                for c in 0..3 {
-                    out[0][c] += w * d[c];
-                    out[1][c] += w * i[c];
+                for ch in 0..3 {
+                    out[0][ch] += w * d[ch];
+                    out[1][ch] += w * i[ch];
                 }
             }
         }
@@ -208,6 +234,8 @@ pub fn march_ray<S: InScatter>(
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
+    let mut sampler = BlockSampler::new(scene.density);
+    let mut corners = S::Cache::default();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
         let k_lo = k_at(t_a).max(next_k);
@@ -215,14 +243,15 @@ pub fn march_ray<S: InScatter>(
             taken += 1;
             let t = t_entry + (k as f64 + jitter) * step;
             let p = (o + d * t).as_vec3();
-            let rho = scene.density.sample_index(p);
+            let rho = sampler.sample(p);
             if rho > 0.0 {
                 let tau = sigma_t * rho * step_f32;
-                let step_tr = (-tau).exp();
-                // 1 − e^{−τ} without cancellation for thin steps.
-                let opacity = -(-tau).exp_m1();
+                // e^{−τ} − 1 once: the step's opacity 1 − e^{−τ} without cancellation for thin
+                // steps, and its transmittance.
+                let em1 = (-tau).exp_m1();
+                let (step_tr, opacity) = (1.0 + em1, -em1);
                 if albedo > 0.0 {
-                    let [ls_d, ls_i] = scene.source.radiance(p);
+                    let [ls_d, ls_i] = scene.source.radiance(p, &mut corners);
                     let c = tr * albedo * opacity;
                     for ch in 0..3 {
                         out.direct[ch] += c * ls_d[ch];
@@ -369,7 +398,8 @@ mod tests {
     struct Constant([[f32; 3]; 2]);
 
     impl InScatter for Constant {
-        fn radiance(&self, _: Vec3) -> [[f32; 3]; 2] {
+        type Cache = ();
+        fn radiance(&self, _: Vec3, _: &mut ()) -> [[f32; 3]; 2] {
             self.0
         }
     }
@@ -378,7 +408,8 @@ mod tests {
     struct Smooth;
 
     impl InScatter for Smooth {
-        fn radiance(&self, p: Vec3) -> [[f32; 3]; 2] {
+        type Cache = ();
+        fn radiance(&self, p: Vec3, _: &mut ()) -> [[f32; 3]; 2] {
             let s = (p * 0.1).to_array().map(f32::sin);
             [
                 [1.0 + s[0], 1.0 + s[1], 1.0 + s[2]],
@@ -690,9 +721,21 @@ mod tests {
             radiance: &radiance,
         };
         // Direct red is the transfer-voxel x coordinate: trilinear reproduces x / K.
-        let [d, i] = src.radiance(Vec3::new(33.0, 20.5, 70.25));
+        let mut cache = CornerCache::default();
+        let p = Vec3::new(33.0, 20.5, 70.25);
+        let [d, i] = src.radiance(p, &mut cache);
         assert!((d[0] - 33.0 / 6.0).abs() < 1e-5 && (d[1] - 1.0).abs() < 1e-6);
         assert!((i[2] - 0.25).abs() < 1e-6);
+        // The cached corners give what the layout's own interpolation weights give.
+        for q in [p, p + 0.7, p - Vec3::new(6.5, 0.0, 1.0), p] {
+            let [d, _] = src.radiance(q, &mut cache);
+            let want: f32 = layout
+                .corners(q)
+                .iter()
+                .map(|(s, w)| s.map_or(0.0, |s| w * radiance.direct[s][0]))
+                .sum();
+            assert!((d[0] - want).abs() < 1e-5, "{q}");
+        }
     }
 
     #[test]

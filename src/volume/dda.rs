@@ -181,6 +181,10 @@ impl Occupancy {
         mut f: impl FnMut(Span) -> ControlFlow<()>,
     ) {
         let Some((lo, hi)) = self.bounds else { return };
+        // A non-finite ray could stall the walk (zero cell steps); it crosses nothing measurable.
+        if !(origin.is_finite() && dir.is_finite()) || dir == DVec3::ZERO {
+            return;
+        }
         let Some((t0, t1)) = clip_to_box(origin, dir, t0, t1, lo, hi) else {
             return;
         };
