@@ -26,7 +26,7 @@ use crate::render::camera::{hash_unit, pixel_offset, Camera, STREAM_STEP};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
 use crate::volume::dda::{clip_to_box, Occupancy};
-use crate::volume::sampler::BlockSampler;
+use crate::volume::sampler::{floor_to_int, BlockSampler};
 use crate::volume::sparse::corner;
 use crate::volume::SparseGrid;
 
@@ -69,9 +69,8 @@ impl InScatter for TransferRadiance<'_> {
     #[inline]
     fn radiance(&self, p: Vec3, cache: &mut CornerCache) -> [[f32; 3]; 2] {
         let q = p / self.layout.k as f32;
-        let base = q.floor();
-        let f = q - base;
-        let b = base.as_ivec3();
+        let b = floor_to_int(q);
+        let f = q - b.as_vec3();
         if cache.base != Some(b) {
             cache.base = Some(b);
             cache.slots = std::array::from_fn(|n| self.layout.slot(b + corner(n)));
