@@ -1,10 +1,14 @@
 //! vscatter: read sparse OpenVDB fog volumes, bake a light-independent spherical-harmonic transfer
 //! with multiple scattering, and relight it with any HDR environment.
 
+pub mod atomic;
 pub mod cli;
 pub mod error;
+pub mod image;
 pub mod info;
+pub mod progress;
 pub mod render;
+pub mod sh;
 pub mod transfer;
 pub mod volume;
 

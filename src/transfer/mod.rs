@@ -3,6 +3,7 @@
 //! scattering events (`f_ms`, thesis 4.2) — independent of any environment.
 
 pub mod grid;
+pub mod single;
 
 pub use grid::TransferLayout;
 

@@ -3,6 +3,7 @@
 pub mod dda;
 pub mod sampler;
 pub mod sparse;
+pub mod transmittance;
 pub mod vdb;
 
 pub use sparse::{SparseGrid, TileLevel, Transform};

@@ -1,0 +1,296 @@
+//! Output images: a linear-light RGBA buffer with optional extra named channels, written as OpenEXR
+//! (f32 or half, every channel kept) or as a tonemapped 8-bit sRGB PNG — always atomically.
+
+use std::io::{self, BufWriter, Seek, Write};
+use std::path::Path;
+
+use exr::prelude::{
+    f16, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec,
+    WritableImage,
+};
+
+use crate::atomic::write_atomic;
+use crate::error::{Error, Result};
+
+/// A linear-light image. `rgba` is row-major with row 0 at the top, colour premultiplied by alpha
+/// (the OpenEXR convention: a pixel the volume half covers over no background is (c·a, a)).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageBuf {
+    pub width: usize,
+    pub height: usize,
+    pub rgba: Vec<[f32; 4]>,
+    /// Extra EXR channels, each `width·height` values, named with the EXR layer convention
+    /// (`direct.R`, `indirect.G`, `depth.Z`, …). PNG output ignores them.
+    pub extra: Vec<(String, Vec<f32>)>,
+}
+
+/// Sample precision of EXR output.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ExrPrecision {
+    #[default]
+    Float,
+    /// Half floats: half the size, 11 bits of mantissa, maximum 65504.
+    Half,
+}
+
+/// How [`ImageBuf::write`] encodes the file it chooses by extension.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct WriteOptions {
+    /// PNG only: exposure in stops (EV) applied before the tonemap.
+    pub exposure: f32,
+    /// EXR only.
+    pub precision: ExrPrecision,
+}
+
+impl ImageBuf {
+    /// A transparent black image.
+    pub fn new(width: usize, height: usize) -> Self {
+        ImageBuf {
+            width,
+            height,
+            rgba: vec![[0.0; 4]; width * height],
+            extra: Vec::new(),
+        }
+    }
+
+    /// An opaque image from RGB pixels (row-major, row 0 at the top).
+    pub fn from_rgb(width: usize, height: usize, rgb: &[[f32; 3]]) -> Self {
+        ImageBuf {
+            width,
+            height,
+            rgba: rgb.iter().map(|&[r, g, b]| [r, g, b, 1.0]).collect(),
+            extra: Vec::new(),
+        }
+    }
+
+    /// Writes EXR or PNG according to the extension of `path` (case-insensitive).
+    pub fn write(&self, path: &Path, options: &WriteOptions) -> Result<()> {
+        let ext = path
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase());
+        match ext.as_deref() {
+            Some("exr") => self.write_exr(path, options.precision),
+            Some("png") => self.write_png(path, options.exposure),
+            _ => Err(Error::usage(format!(
+                "{}: output must end in .exr or .png",
+                path.display()
+            ))),
+        }
+    }
+
+    /// Checks the buffer sizes, so a caller's mistake is an error instead of a corrupt file.
+    fn check(&self) -> Result<()> {
+        let n = self.width * self.height;
+        if n == 0 {
+            return Err(Error::Runtime(format!(
+                "cannot write an empty {}x{} image",
+                self.width, self.height
+            )));
+        }
+        if self.rgba.len() != n {
+            return Err(Error::Runtime(format!(
+                "image has {} pixels, expected {n}",
+                self.rgba.len()
+            )));
+        }
+        for (name, values) in &self.extra {
+            if values.len() != n || name.is_empty() || ["R", "G", "B", "A"].contains(&name.as_str())
+            {
+                return Err(Error::Runtime(format!(
+                    "extra channel {name:?}: bad name or {} values, expected {n}",
+                    values.len()
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes a single-part scanline EXR, ZIP-compressed, with channels R, G, B, A and every extra.
+    pub fn write_exr(&self, path: &Path, precision: ExrPrecision) -> Result<()> {
+        self.check()?;
+        let samples = |values: Vec<f32>| match precision {
+            ExrPrecision::Float => FlatSamples::F32(values),
+            ExrPrecision::Half => FlatSamples::F16(values.into_iter().map(f16::from_f32).collect()),
+        };
+        let mut channels: SmallVec<[AnyChannel<FlatSamples>; 4]> = ["R", "G", "B", "A"]
+            .iter()
+            .enumerate()
+            .map(|(k, name)| {
+                AnyChannel::new(*name, samples(self.rgba.iter().map(|p| p[k]).collect()))
+            })
+            .collect();
+        for (name, values) in &self.extra {
+            channels.push(AnyChannel::new(name.as_str(), samples(values.clone())));
+        }
+        let layer = Layer::new(
+            (self.width, self.height),
+            LayerAttributes::default(),
+            // ZIP: lossless and the usual choice for rendered images; half the size of raw floats.
+            Encoding::SMALL_LOSSLESS,
+            AnyChannels::sort(channels),
+        );
+        let image = Image::from_layer(layer);
+        write_atomic(path, |w: &mut BufWriter<std::fs::File>| {
+            image.write().to_buffered(w).map_err(exr_to_io)
+        })
+    }
+
+    /// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve.
+    /// Fully opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as
+    /// PNG expects.
+    pub fn write_png(&self, path: &Path, exposure_ev: f32) -> Result<()> {
+        self.check()?;
+        let scale = exposure_ev.exp2();
+        let opaque = self.rgba.iter().all(|p| p[3] >= 1.0);
+        let channels = if opaque { 3 } else { 4 };
+        let mut bytes = Vec::with_capacity(self.rgba.len() * channels);
+        for p in &self.rgba {
+            let a = p[3].clamp(0.0, 1.0);
+            let unpremultiply = if opaque || a <= 0.0 { 1.0 } else { 1.0 / a };
+            for &c in &p[..3] {
+                bytes.push(to_u8(srgb_encode(tonemap_aces(c * unpremultiply * scale))));
+            }
+            if !opaque {
+                bytes.push(to_u8(a));
+            }
+        }
+        let (w, h) = (self.width, self.height);
+        let (Ok(w32), Ok(h32)) = (u32::try_from(w), u32::try_from(h)) else {
+            return Err(Error::Runtime(format!("{w}x{h} is too large for PNG")));
+        };
+        write_atomic(path, |out| encode_png(out, w32, h32, opaque, &bytes))
+    }
+}
+
+fn encode_png<W: Write + Seek>(
+    out: &mut W,
+    w: u32,
+    h: u32,
+    opaque: bool,
+    bytes: &[u8],
+) -> io::Result<()> {
+    let mut enc = png::Encoder::new(out, w, h);
+    enc.set_color(if opaque {
+        png::ColorType::Rgb
+    } else {
+        png::ColorType::Rgba
+    });
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+    let mut writer = enc.write_header().map_err(png_to_io)?;
+    writer.write_image_data(bytes).map_err(png_to_io)?;
+    writer.finish().map_err(png_to_io)
+}
+
+fn exr_to_io(e: exr::error::Error) -> io::Error {
+    match e {
+        exr::error::Error::Io(e) => e,
+        other => io::Error::other(other.to_string()),
+    }
+}
+
+fn png_to_io(e: png::EncodingError) -> io::Error {
+    match e {
+        png::EncodingError::IoError(e) => e,
+        other => io::Error::other(other.to_string()),
+    }
+}
+
+fn to_u8(x: f32) -> u8 {
+    // NaN maps to 0: `as` saturates and sends NaN to 0.
+    (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// The ACES filmic tonemap as fitted by Narkowicz (2015, "ACES Filmic Tone Mapping Curve"): a
+/// rational curve close to the ACES reference rendering transform, with a gentle toe, a long
+/// shoulder that keeps bright sun-lit cloud tops from clipping abruptly, and mid-grey 0.18 ↦ ≈0.27.
+/// Input linear scene values, output display-linear in [0, 1].
+pub fn tonemap_aces(x: f32) -> f32 {
+    const A: f32 = 2.51;
+    const B: f32 = 0.03;
+    const C: f32 = 2.43;
+    const D: f32 = 0.59;
+    const E: f32 = 0.14;
+    let x = x.max(0.0);
+    ((x * (A * x + B)) / (x * (C * x + D) + E)).clamp(0.0, 1.0)
+}
+
+/// The sRGB transfer curve (IEC 61966-2-1): display-linear [0, 1] to encoded [0, 1].
+pub fn srgb_encode(x: f32) -> f32 {
+    if x <= 0.003_130_8 {
+        12.92 * x.max(0.0)
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use exr::prelude::read_all_flat_layers_from_file;
+
+    fn test_image() -> ImageBuf {
+        let mut img = ImageBuf::new(3, 2);
+        for (i, p) in img.rgba.iter_mut().enumerate() {
+            *p = [i as f32, 0.5, 2.0, 1.0];
+        }
+        img.extra
+            .push(("depth.Z".into(), (0..6).map(|i| i as f32 * 10.0).collect()));
+        img
+    }
+
+    #[test]
+    fn exr_round_trips_with_extra_channels() {
+        let dir = tempfile::tempdir().unwrap();
+        for precision in [ExrPrecision::Float, ExrPrecision::Half] {
+            let path = dir.path().join("t.exr");
+            test_image().write_exr(&path, precision).unwrap();
+            let image = read_all_flat_layers_from_file(&path).unwrap();
+            let channels = &image.layer_data[0].channel_data.list;
+            let names: Vec<String> = channels.iter().map(|c| c.name.to_string()).collect();
+            assert_eq!(names, ["A", "B", "G", "R", "depth.Z"]);
+            let r: Vec<f32> = channels[3].sample_data.values_as_f32().collect();
+            assert_eq!(r, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+            let z: Vec<f32> = channels[4].sample_data.values_as_f32().collect();
+            assert_eq!(z[5], 50.0);
+        }
+    }
+
+    #[test]
+    fn png_is_written_and_extension_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let img = test_image();
+        let path = dir.path().join("t.png");
+        img.write(&path, &WriteOptions::default()).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+        assert!(matches!(
+            img.write(&dir.path().join("t.jpg"), &WriteOptions::default()),
+            Err(Error::Usage(_))
+        ));
+    }
+
+    #[test]
+    fn mismatched_extra_channel_is_an_error() {
+        let mut img = test_image();
+        img.extra.push(("bad.Z".into(), vec![1.0]));
+        let dir = tempfile::tempdir().unwrap();
+        assert!(img
+            .write_exr(&dir.path().join("x.exr"), ExrPrecision::Float)
+            .is_err());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn tonemap_and_srgb_are_monotone_and_bounded() {
+        assert_eq!(tonemap_aces(0.0), 0.0);
+        assert!((tonemap_aces(1e6) - 1.0).abs() < 1e-3);
+        assert!((srgb_encode(1.0) - 1.0).abs() < 1e-6);
+        let mut last = -1.0;
+        for i in 0..1000 {
+            let v = srgb_encode(tonemap_aces(i as f32 * 0.01));
+            assert!(v >= last);
+            last = v;
+        }
+    }
+}

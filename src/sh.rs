@@ -1,0 +1,740 @@
+//! Real orthonormal spherical harmonics (thesis ch. 2): the basis Yᵢ evaluated at a direction, the
+//! pixel quadrature that projects a latitude–longitude map onto it, reconstruction, windowing
+//! (thesis eq. 6.1) and rotation about +Y.
+//!
+//! Conventions (DESIGN.md): index i = l(l+1)+m, 0-based; polar axis **+Y**, θ measured from +Y, φ as in
+//! the latlong mapping, so a direction is ω = (sinθ·sinφ, cosθ, −sinθ·cosφ). The real basis is
+//!
+//! ```text
+//! Y_l^m  = √2 · N_l^m · P_l^m(cosθ) · cos(mφ)     m > 0
+//! Y_l^0  =      N_l^0 · P_l^0(cosθ)
+//! Y_l^-m = √2 · N_l^m · P_l^m(cosθ) · sin(mφ)     m > 0
+//! N_l^m  = √((2l+1)/(4π) · (l−m)!/(l+m)!)
+//! ```
+//!
+//! without the Condon–Shortley phase, so Y₁₋₁ = √(3/4π)·ω.x, Y₁₀ = √(3/4π)·ω.y, Y₁₁ = −√(3/4π)·ω.z.
+//! The normalised Legendre values come from the standard stable three-term recurrences with the
+//! normalisation folded in (Holmes & Featherstone 2002); everything is f64 inside, f32 in storage.
+
+use std::f64::consts::PI;
+use std::sync::LazyLock;
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+
+/// The most bands any command accepts. 20 bands (400 coefficients) is twice the thesis' production
+/// setting (10 bands, thesis 6.4.1) and still a few kilobytes per transfer voxel; the recurrences
+/// stay accurate (f64) far beyond it.
+pub const MAX_BANDS: usize = 20;
+
+/// The default band count (thesis 6.4.1: "around 10 bands … is sufficient").
+pub const DEFAULT_BANDS: usize = 10;
+
+/// Number of coefficients of `bands` bands.
+pub const fn coeff_count(bands: usize) -> usize {
+    bands * bands
+}
+
+/// The 0-based coefficient index of (l, m), |m| ≤ l.
+pub const fn index(l: usize, m: isize) -> usize {
+    ((l * (l + 1)) as isize + m) as usize
+}
+
+/// Checks a user-supplied band count: 1..=MAX_BANDS, else a usage error naming the flag.
+pub fn check_bands(bands: usize) -> Result<()> {
+    if bands == 0 || bands > MAX_BANDS {
+        return Err(Error::usage(format!(
+            "--bands must be between 1 and {MAX_BANDS}, got {bands}"
+        )));
+    }
+    Ok(())
+}
+
+/// Per-band damping of the environment's coefficients against ringing (thesis 6.4.2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Window {
+    /// No damping.
+    #[default]
+    None,
+    /// Thesis eq. 6.1: w_l = 0.54 + 0.46·cos(π·l/Lmax), Lmax = bands − 1.
+    Hamming,
+}
+
+impl Window {
+    /// The weight of band `l` out of `bands` bands.
+    pub fn weight(self, l: usize, bands: usize) -> f64 {
+        match self {
+            Window::None => 1.0,
+            // A single band has Lmax = 0; eq. 6.1 is undefined there and band 0 keeps weight 1.
+            Window::Hamming if bands <= 1 => 1.0,
+            Window::Hamming => 0.54 + 0.46 * (PI * l as f64 / (bands - 1) as f64).cos(),
+        }
+    }
+}
+
+/// A float type the basis can be written into.
+pub trait Real: Copy + Send + Sync {
+    fn from_f64(x: f64) -> Self;
+}
+impl Real for f32 {
+    fn from_f64(x: f64) -> Self {
+        x as f32
+    }
+}
+impl Real for f64 {
+    fn from_f64(x: f64) -> Self {
+        x
+    }
+}
+
+/// Index of (l, m ≥ 0) in the triangular Legendre tables.
+const fn tri(l: usize, m: usize) -> usize {
+    l * (l + 1) / 2 + m
+}
+
+/// Recurrence constants, computed once so that evaluating the basis costs no square roots.
+struct Recurrence {
+    /// N_m^m·(2m−1)!!: the normalised sectoral value divided by sin^mθ.
+    diag: [f64; MAX_BANDS],
+    /// a_lm = √((4l²−1)/(l²−m²)), for l ≥ m+2.
+    a: Vec<f64>,
+    /// b_lm = √(((l−1)²−m²)/(4(l−1)²−1)), for l ≥ m+2.
+    b: Vec<f64>,
+}
+
+static RECURRENCE: LazyLock<Recurrence> = LazyLock::new(|| {
+    let mut diag = [0.0; MAX_BANDS];
+    diag[0] = (1.0 / (4.0 * PI)).sqrt();
+    for m in 1..MAX_BANDS {
+        let m2 = 2.0 * m as f64;
+        diag[m] = diag[m - 1] * ((m2 + 1.0) / m2).sqrt();
+    }
+    let n = tri(MAX_BANDS, 0);
+    let (mut a, mut b) = (vec![0.0; n], vec![0.0; n]);
+    for l in 2..MAX_BANDS {
+        for m in 0..l - 1 {
+            let (lf, mf) = (l as f64, m as f64);
+            a[tri(l, m)] = ((4.0 * lf * lf - 1.0) / (lf * lf - mf * mf)).sqrt();
+            let l1 = lf - 1.0;
+            b[tri(l, m)] = ((l1 * l1 - mf * mf) / (4.0 * l1 * l1 - 1.0)).sqrt();
+        }
+    }
+    Recurrence { diag, a, b }
+});
+
+/// Calls `emit(l, q)` for l = m … bands−1 with q = N_l^m·P_l^m(t)/sin^mθ, t = cosθ.
+#[inline(always)]
+fn legendre_column(
+    rec: &Recurrence,
+    t: f64,
+    m: usize,
+    bands: usize,
+    mut emit: impl FnMut(usize, f64),
+) {
+    let mut q0 = rec.diag[m];
+    emit(m, q0);
+    if m + 1 >= bands {
+        return;
+    }
+    let mut q1 = t * (2.0 * m as f64 + 3.0).sqrt() * q0;
+    emit(m + 1, q1);
+    for l in m + 2..bands {
+        let k = tri(l, m);
+        let q2 = rec.a[k] * (t * q1 - rec.b[k] * q0);
+        emit(l, q2);
+        q0 = q1;
+        q1 = q2;
+    }
+}
+
+/// Writes N_l^m·P_l^m(cosθ) (m ≥ 0, sin^mθ included) into `out[tri(l, m)]`: the θ part of the basis
+/// for one latlong row.
+fn legendre_row(cos_theta: f64, sin_theta: f64, bands: usize, out: &mut [f64]) {
+    let rec = &*RECURRENCE;
+    let mut sin_m = 1.0;
+    for m in 0..bands {
+        legendre_column(rec, cos_theta, m, bands, |l, q| out[tri(l, m)] = q * sin_m);
+        sin_m *= sin_theta;
+    }
+}
+
+/// Evaluates all `bands²` basis functions at the unit direction `dir` into `out[..bands²]`.
+///
+/// No allocation, no trigonometry: sin^mθ·cos(mφ) and sin^mθ·sin(mφ) are the real and imaginary parts
+/// of (sinθ·cosφ + i·sinθ·sinφ)^m = (−z + i·x)^m, built up by complex multiplication.
+/// Panics if `bands > MAX_BANDS` or `out` is shorter than `bands²` (callers check `bands` first).
+pub fn eval_basis<T: Real>(dir: [f64; 3], bands: usize, out: &mut [T]) {
+    assert!(bands <= MAX_BANDS && out.len() >= coeff_count(bands));
+    let rec = &*RECURRENCE;
+    let [x, t, z] = dir;
+    let (ca, sa) = (-z, x); // sinθ·cosφ, sinθ·sinφ
+    let (mut cm, mut sm) = (1.0, 0.0); // sin^mθ·cos(mφ), sin^mθ·sin(mφ)
+    for m in 0..bands {
+        if m == 0 {
+            legendre_column(rec, t, 0, bands, |l, q| out[index(l, 0)] = T::from_f64(q));
+        } else {
+            let (c, s) = (std::f64::consts::SQRT_2 * cm, std::f64::consts::SQRT_2 * sm);
+            let mi = m as isize;
+            legendre_column(rec, t, m, bands, |l, q| {
+                out[index(l, mi)] = T::from_f64(q * c);
+                out[index(l, -mi)] = T::from_f64(q * s);
+            });
+        }
+        (cm, sm) = (cm * ca - sm * sa, cm * sa + sm * ca);
+    }
+}
+
+/// θ at the centre of latlong row `row` of `height`, and cosθ at its top and bottom edges.
+pub fn latlong_row(row: usize, height: usize) -> (f64, f64, f64) {
+    let h = height as f64;
+    let theta = PI * (row as f64 + 0.5) / h;
+    let top = (PI * row as f64 / h).cos();
+    let bottom = (PI * (row as f64 + 1.0) / h).cos();
+    (theta, top, bottom)
+}
+
+/// The solid angle of one pixel of latlong row `row`: Δφ·(cosθ_top − cosθ_bottom), exact.
+pub fn latlong_pixel_solid_angle(row: usize, width: usize, height: usize) -> f64 {
+    let (_, top, bottom) = latlong_row(row, height);
+    2.0 * PI / width as f64 * (top - bottom)
+}
+
+/// cos(mφ) and sin(mφ) at every column centre, laid out `[col * bands + m]`.
+fn column_trig(width: usize, bands: usize) -> (Vec<f64>, Vec<f64>) {
+    let mut cos = vec![0.0; width * bands];
+    let mut sin = vec![0.0; width * bands];
+    for col in 0..width {
+        let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
+        for m in 0..bands {
+            let (s, c) = (m as f64 * phi).sin_cos();
+            cos[col * bands + m] = c;
+            sin[col * bands + m] = s;
+        }
+    }
+    (cos, sin)
+}
+
+/// SH coefficients of an `N`-channel function on the sphere.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sh<const N: usize> {
+    pub bands: usize,
+    /// `bands²` coefficients, index i = l(l+1)+m.
+    pub coeffs: Vec<[f32; N]>,
+}
+
+/// Coefficients of an RGB function (an environment map).
+pub type ShRgb = Sh<3>;
+
+impl<const N: usize> Sh<N> {
+    /// All-zero coefficients.
+    pub fn zeros(bands: usize) -> Self {
+        Sh {
+            bands,
+            coeffs: vec![[0.0; N]; coeff_count(bands)],
+        }
+    }
+
+    /// Projects a latlong map (`width × height`, row-major, row 0 at the zenith) onto `bands` bands.
+    ///
+    /// Deterministic quadrature: each pixel's centre value times its exact solid angle. It separates:
+    /// per column cos(mφ), sin(mφ) once; per row a Fourier sum over the columns for each m, then
+    /// the row's Legendre values once. In φ the midpoint rule is exact for every |m| < width/2, so the
+    /// whole error is the midpoint rule in θ, O(1/height²) (measured in the tests).
+    /// Panics if `pixels.len() != width·height` or `bands > MAX_BANDS`.
+    pub fn project_latlong(width: usize, height: usize, bands: usize, pixels: &[[f32; N]]) -> Self {
+        assert!(bands <= MAX_BANDS && pixels.len() == width * height);
+        let (cos_tab, sin_tab) = column_trig(width, bands);
+        let n = coeff_count(bands);
+        let sums = pixels
+            .par_chunks(width.max(1))
+            .enumerate()
+            .fold(
+                || (vec![0.0f64; n * N], RowScratch::new(bands, N)),
+                |(mut acc, mut scratch), (row, line)| {
+                    scratch.fourier(line, bands, &cos_tab, &sin_tab);
+                    let (theta, top, bottom) = latlong_row(row, height);
+                    let weight = 2.0 * PI / width as f64 * (top - bottom);
+                    legendre_row(theta.cos(), theta.sin(), bands, &mut scratch.legendre);
+                    for l in 0..bands {
+                        for m in 0..=l {
+                            let p = scratch.legendre[tri(l, m)] * weight;
+                            for c in 0..N {
+                                let re = scratch.re[c * bands + m];
+                                if m == 0 {
+                                    acc[index(l, 0) * N + c] += p * re;
+                                } else {
+                                    let im = scratch.im[c * bands + m];
+                                    let p2 = std::f64::consts::SQRT_2 * p;
+                                    acc[index(l, m as isize) * N + c] += p2 * re;
+                                    acc[index(l, -(m as isize)) * N + c] += p2 * im;
+                                }
+                            }
+                        }
+                    }
+                    (acc, scratch)
+                },
+            )
+            .map(|(acc, _)| acc)
+            .reduce(
+                || vec![0.0f64; n * N],
+                |mut a, b| {
+                    a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                    a
+                },
+            );
+        let mut sh = Self::zeros(bands);
+        for (i, c) in sh.coeffs.iter_mut().enumerate() {
+            for (k, v) in c.iter_mut().enumerate() {
+                *v = sums[i * N + k] as f32;
+            }
+        }
+        sh
+    }
+
+    /// Evaluates the function at pixel centres of a `width × height` latlong map (separated like
+    /// [`Sh::project_latlong`]).
+    pub fn reconstruct_latlong(&self, width: usize, height: usize) -> Vec<[f32; N]> {
+        let bands = self.bands;
+        let (cos_tab, sin_tab) = column_trig(width, bands);
+        let mut out = vec![[0.0f32; N]; width * height];
+        out.par_chunks_mut(width.max(1))
+            .enumerate()
+            .for_each(|(row, line)| {
+                let (theta, _, _) = latlong_row(row, height);
+                let mut legendre = vec![0.0; tri(bands, 0)];
+                legendre_row(theta.cos(), theta.sin(), bands, &mut legendre);
+                // re[m][c], im[m][c]: this row's amplitude of cos(mφ) and sin(mφ).
+                let mut re = vec![[0.0f64; N]; bands];
+                let mut im = vec![[0.0f64; N]; bands];
+                for l in 0..bands {
+                    for m in 0..=l {
+                        let p = legendre[tri(l, m)];
+                        for c in 0..N {
+                            if m == 0 {
+                                re[0][c] += p * self.coeffs[index(l, 0)][c] as f64;
+                            } else {
+                                let p2 = std::f64::consts::SQRT_2 * p;
+                                re[m][c] += p2 * self.coeffs[index(l, m as isize)][c] as f64;
+                                im[m][c] += p2 * self.coeffs[index(l, -(m as isize))][c] as f64;
+                            }
+                        }
+                    }
+                }
+                for (col, px) in line.iter_mut().enumerate() {
+                    let (ct, st) = (
+                        &cos_tab[col * bands..][..bands],
+                        &sin_tab[col * bands..][..bands],
+                    );
+                    for c in 0..N {
+                        let mut v = 0.0;
+                        for m in 0..bands {
+                            v += re[m][c] * ct[m] + im[m][c] * st[m];
+                        }
+                        px[c] = v as f32;
+                    }
+                }
+            });
+        out
+    }
+
+    /// The function's value in the unit direction `dir`.
+    pub fn eval(&self, dir: [f64; 3]) -> [f32; N] {
+        let mut basis = [0.0f64; coeff_count(MAX_BANDS)];
+        eval_basis(dir, self.bands, &mut basis);
+        let mut v = [0.0f64; N];
+        for (y, c) in basis.iter().zip(&self.coeffs) {
+            for k in 0..N {
+                v[k] += y * c[k] as f64;
+            }
+        }
+        v.map(|x| x as f32)
+    }
+
+    /// Multiplies band l by `window.weight(l, bands)` (apply once, to the environment only).
+    pub fn apply_window(&mut self, window: Window) {
+        for l in 0..self.bands {
+            let w = window.weight(l, self.bands) as f32;
+            for c in &mut self.coeffs[index(l, -(l as isize))..=index(l, l as isize)] {
+                c.iter_mut().for_each(|v| *v *= w);
+            }
+        }
+    }
+
+    /// Rotates the function about +Y by `alpha` radians, right-handed: a positive angle turns the
+    /// environment counter-clockwise seen from above (from +Y), so a feature at azimuth φ moves to
+    /// φ − α (towards smaller u in the latlong image; −Z turns towards −X). Afterwards
+    /// f'(θ, φ) = f(θ, φ + α); within each band it mixes only the pair (m, −m):
+    /// c' = c·cos mα + s·sin mα, s' = s·cos mα − c·sin mα.
+    pub fn rotate_y(&mut self, alpha: f64) {
+        for l in 1..self.bands {
+            for m in 1..=l {
+                let (sin, cos) = (m as f64 * alpha).sin_cos();
+                let (ic, is) = (index(l, m as isize), index(l, -(m as isize)));
+                for k in 0..N {
+                    let (c, s) = (self.coeffs[ic][k] as f64, self.coeffs[is][k] as f64);
+                    self.coeffs[ic][k] = (c * cos + s * sin) as f32;
+                    self.coeffs[is][k] = (s * cos - c * sin) as f32;
+                }
+            }
+        }
+    }
+
+    /// Energy per band, Σ_m |c_lm|² for each channel.
+    pub fn band_energy(&self) -> Vec<[f64; N]> {
+        (0..self.bands)
+            .map(|l| {
+                let mut e = [0.0; N];
+                for c in &self.coeffs[index(l, -(l as isize))..=index(l, l as isize)] {
+                    for k in 0..N {
+                        e[k] += (c[k] as f64).powi(2);
+                    }
+                }
+                e
+            })
+            .collect()
+    }
+}
+
+/// Per-thread buffers of the projection: one row's Fourier sums and Legendre values.
+struct RowScratch {
+    /// Σ_col pixel·cos(mφ), laid out `[channel * bands + m]`.
+    re: Vec<f64>,
+    /// Σ_col pixel·sin(mφ), same layout.
+    im: Vec<f64>,
+    legendre: Vec<f64>,
+}
+
+impl RowScratch {
+    fn new(bands: usize, channels: usize) -> Self {
+        RowScratch {
+            re: vec![0.0; bands * channels],
+            im: vec![0.0; bands * channels],
+            legendre: vec![0.0; tri(bands, 0)],
+        }
+    }
+
+    /// The row's Fourier sums. The innermost loop runs over m on contiguous tables so it vectorises.
+    fn fourier<const N: usize>(
+        &mut self,
+        line: &[[f32; N]],
+        bands: usize,
+        cos: &[f64],
+        sin: &[f64],
+    ) {
+        self.re.iter_mut().for_each(|v| *v = 0.0);
+        self.im.iter_mut().for_each(|v| *v = 0.0);
+        for (col, px) in line.iter().enumerate() {
+            let (ct, st) = (&cos[col * bands..][..bands], &sin[col * bands..][..bands]);
+            for (c, &value) in px.iter().enumerate() {
+                let v = value as f64;
+                let re = &mut self.re[c * bands..][..bands];
+                let im = &mut self.im[c * bands..][..bands];
+                for m in 0..bands {
+                    re[m] += v * ct[m];
+                    im[m] += v * st[m];
+                }
+            }
+        }
+    }
+}
+
+/// The unit direction of spherical angles (θ from +Y, φ per the latlong mapping).
+pub fn direction(theta: f64, phi: f64) -> [f64; 3] {
+    let (st, ct) = theta.sin_cos();
+    let (sp, cp) = phi.sin_cos();
+    [st * sp, ct, -st * cp]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Gauss–Legendre nodes and weights on [−1, 1] (Newton on the Legendre recurrence).
+    fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
+        (0..n)
+            .map(|i| {
+                let mut x = (PI * (i as f64 + 0.75) / (n as f64 + 0.5)).cos();
+                loop {
+                    let (mut p0, mut p1) = (1.0, x);
+                    for k in 2..=n {
+                        let kf = k as f64;
+                        (p0, p1) = (p1, ((2.0 * kf - 1.0) * x * p1 - (kf - 1.0) * p0) / kf);
+                    }
+                    let dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
+                    let dx = p1 / dp;
+                    x -= dx;
+                    if dx.abs() < 1e-15 {
+                        let (mut p0, mut p1) = (1.0, x);
+                        for k in 2..=n {
+                            let kf = k as f64;
+                            (p0, p1) = (p1, ((2.0 * kf - 1.0) * x * p1 - (kf - 1.0) * p0) / kf);
+                        }
+                        let dp = n as f64 * (x * p1 - p0) / (x * x - 1.0);
+                        return (x, 2.0 / ((1.0 - x * x) * dp * dp));
+                    }
+                }
+            })
+            .collect()
+    }
+
+    /// Max |∫YᵢYⱼ − δᵢⱼ| over all pairs, by exact quadrature (Gauss–Legendre in cosθ, uniform in φ).
+    fn orthonormality_error(bands: usize) -> f64 {
+        let n = coeff_count(bands);
+        let nodes = gauss_legendre(bands + 1);
+        let n_phi = 2 * bands + 1;
+        let mut gram = vec![0.0f64; n * n];
+        let mut y = vec![0.0f64; n];
+        for &(t, w) in &nodes {
+            for k in 0..n_phi {
+                let phi = 2.0 * PI * k as f64 / n_phi as f64;
+                eval_basis(direction(t.acos(), phi), bands, &mut y);
+                let wk = w * 2.0 * PI / n_phi as f64;
+                for i in 0..n {
+                    for j in 0..n {
+                        gram[i * n + j] += wk * y[i] * y[j];
+                    }
+                }
+            }
+        }
+        let mut worst = 0.0f64;
+        for i in 0..n {
+            for j in 0..n {
+                let delta = if i == j { 1.0 } else { 0.0 };
+                worst = worst.max((gram[i * n + j] - delta).abs());
+            }
+        }
+        worst
+    }
+
+    #[test]
+    fn orthonormal_by_gauss_legendre_up_to_band_20() {
+        let err = orthonormality_error(MAX_BANDS);
+        eprintln!("orthonormality max error ({MAX_BANDS} bands): {err:.3e}");
+        assert!(err < 1e-6, "{err}");
+    }
+
+    #[test]
+    fn low_bands_match_closed_forms() {
+        let d = [0.36, 0.48, -0.8];
+        let mut y = [0.0f64; 9];
+        eval_basis(d, 3, &mut y);
+        let k1 = (3.0 / (4.0 * PI)).sqrt();
+        let [x, yy, z] = d;
+        let expect = [
+            (1.0 / (4.0 * PI)).sqrt(),
+            k1 * x,
+            k1 * yy,
+            -k1 * z,
+            0.5 * (15.0 / PI).sqrt() * x * -z,
+            0.5 * (15.0 / PI).sqrt() * x * yy,
+            0.25 * (5.0 / PI).sqrt() * (3.0 * yy * yy - 1.0),
+            0.5 * (15.0 / PI).sqrt() * -z * yy,
+            0.25 * (15.0 / PI).sqrt() * (z * z - x * x),
+        ];
+        for i in 0..9 {
+            assert!(
+                (y[i] - expect[i]).abs() < 1e-12,
+                "Y{i}: {} vs {}",
+                y[i],
+                expect[i]
+            );
+        }
+    }
+
+    /// The basis sampled at pixel centres as a map with one channel per basis function would be
+    /// too big; instead project Y_j maps one at a time and take the worst Gram error.
+    fn pixel_quadrature_error(bands: usize, height: usize) -> f64 {
+        let width = 2 * height;
+        let n = coeff_count(bands);
+        let mut y = vec![0.0f64; n];
+        let mut worst = 0.0f64;
+        for j in 0..n {
+            let mut map = vec![[0.0f32; 1]; width * height];
+            for row in 0..height {
+                let (theta, _, _) = latlong_row(row, height);
+                for col in 0..width {
+                    let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
+                    eval_basis(direction(theta, phi), bands, &mut y);
+                    map[row * width + col] = [y[j] as f32];
+                }
+            }
+            let sh = Sh::<1>::project_latlong(width, height, bands, &map);
+            for (i, c) in sh.coeffs.iter().enumerate() {
+                let delta = if i == j { 1.0 } else { 0.0 };
+                worst = worst.max((c[0] as f64 - delta).abs());
+            }
+        }
+        worst
+    }
+
+    #[test]
+    fn pixel_quadrature_converges_with_rows() {
+        let bands = 8;
+        let errs: Vec<f64> = [32, 64, 128, 256]
+            .iter()
+            .map(|&h| pixel_quadrature_error(bands, h))
+            .collect();
+        eprintln!("pixel quadrature Gram error, {bands} bands, H=32,64,128,256: {errs:?}");
+        // Midpoint rule in θ: error O(1/H²), so each doubling divides it by ≈ 4.
+        for w in errs.windows(2) {
+            assert!(w[1] < w[0] / 3.0, "{errs:?}");
+        }
+        assert!(errs[3] < 2e-3, "{errs:?}");
+    }
+
+    fn map_of(width: usize, height: usize, f: impl Fn([f64; 3]) -> f64) -> Vec<[f32; 1]> {
+        let mut map = Vec::with_capacity(width * height);
+        for row in 0..height {
+            let (theta, _, _) = latlong_row(row, height);
+            for col in 0..width {
+                let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
+                map.push([f(direction(theta, phi)) as f32]);
+            }
+        }
+        map
+    }
+
+    #[test]
+    fn constant_projects_onto_band_zero_only() {
+        // The solid angles sum to exactly 4π, so E₀ is exact at any size; the other coefficients
+        // vanish up to the O(1/H²) midpoint error in θ, hence 1024 rows.
+        let c = 2.5;
+        let (w, h) = (2048, 1024);
+        let sh = Sh::<1>::project_latlong(w, h, 6, &map_of(w, h, |_| c));
+        let e0 = c * (4.0 * PI).sqrt();
+        assert!((sh.coeffs[0][0] as f64 - e0).abs() < 1e-6 * e0);
+        for c in &sh.coeffs[1..] {
+            assert!((c[0] as f64).abs() < 1e-5 * e0, "{c:?}");
+        }
+    }
+
+    #[test]
+    fn cos_theta_projects_onto_y10_only() {
+        let (w, h) = (2048, 1024);
+        let sh = Sh::<1>::project_latlong(w, h, 6, &map_of(w, h, |d| d[1]));
+        let e10 = (4.0 * PI / 3.0).sqrt();
+        for (i, c) in sh.coeffs.iter().enumerate() {
+            let expect = if i == index(1, 0) { e10 } else { 0.0 };
+            assert!((c[0] as f64 - expect).abs() < 1e-5, "coeff {i}: {}", c[0]);
+        }
+    }
+
+    /// A band-limited function with fixed pseudo-random coefficients.
+    fn random_coeffs(bands: usize, seed: u64) -> Vec<f64> {
+        let mut s = seed;
+        (0..coeff_count(bands))
+            .map(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    fn eval_coeffs(c: &[f64], bands: usize, d: [f64; 3]) -> f64 {
+        let mut y = vec![0.0; coeff_count(bands)];
+        eval_basis(d, bands, &mut y);
+        y.iter().zip(c).map(|(a, b)| a * b).sum()
+    }
+
+    #[test]
+    fn band_limited_function_round_trips() {
+        let bands = 6;
+        let (w, h) = (2048, 1024);
+        let c = random_coeffs(bands, 7);
+        let sh =
+            Sh::<1>::project_latlong(w, h, bands, &map_of(w, h, |d| eval_coeffs(&c, bands, d)));
+        for (got, want) in sh.coeffs.iter().zip(&c) {
+            assert!((got[0] as f64 - want).abs() < 1e-4, "{} vs {want}", got[0]);
+        }
+        // Reconstruction at pixel centres and at an arbitrary direction.
+        let recon = sh.reconstruct_latlong(w, h);
+        let orig = map_of(w, h, |d| eval_coeffs(&c, bands, d));
+        let worst = recon
+            .iter()
+            .zip(&orig)
+            .map(|(a, b)| (a[0] - b[0]).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{worst}");
+        let d = direction(1.1, 4.0);
+        assert!((sh.eval(d)[0] as f64 - eval_coeffs(&c, bands, d)).abs() < 1e-4);
+    }
+
+    #[test]
+    fn integral_of_product_is_dot_product() {
+        let bands = 5;
+        let (f, g) = (random_coeffs(bands, 1), random_coeffs(bands, 2));
+        // The product has degree ≤ 2·(bands−1): Gauss–Legendre with `bands` nodes in cosθ and
+        // 2·bands−1 points in φ integrates it exactly.
+        let mut integral = 0.0;
+        let n_phi = 2 * bands;
+        for (t, w) in gauss_legendre(bands + 1) {
+            for k in 0..n_phi {
+                let d = direction(t.acos(), 2.0 * PI * k as f64 / n_phi as f64);
+                integral += w * 2.0 * PI / n_phi as f64
+                    * eval_coeffs(&f, bands, d)
+                    * eval_coeffs(&g, bands, d);
+            }
+        }
+        let dot: f64 = f.iter().zip(&g).map(|(a, b)| a * b).sum();
+        assert!(
+            (integral - dot).abs() < 1e-5 * dot.abs(),
+            "{integral} vs {dot}"
+        );
+    }
+
+    #[test]
+    fn rotating_coefficients_equals_projecting_the_rotated_map() {
+        let bands = 8;
+        let (w, h) = (256, 128);
+        let mut s = 99u64;
+        let map: Vec<[f32; 1]> = (0..w * h)
+            .map(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                [(s >> 40) as f32 / (1u64 << 24) as f32]
+            })
+            .collect();
+        let k = 37; // columns
+        let alpha = 2.0 * PI * k as f64 / w as f64;
+        // f'(θ, φ) = f(θ, φ + α): pixel (col) of the rotated map is pixel (col + k) of the original.
+        let rotated: Vec<[f32; 1]> = (0..w * h)
+            .map(|i| map[(i / w) * w + (i % w + k) % w])
+            .collect();
+        let mut by_coeffs = Sh::<1>::project_latlong(w, h, bands, &map);
+        by_coeffs.rotate_y(alpha);
+        let by_map = Sh::<1>::project_latlong(w, h, bands, &rotated);
+        for (a, b) in by_coeffs.coeffs.iter().zip(&by_map.coeffs) {
+            assert!((a[0] - b[0]).abs() < 1e-4, "{} vs {}", a[0], b[0]);
+        }
+    }
+
+    #[test]
+    fn positive_rotation_is_counter_clockwise_from_above() {
+        // A lobe towards −Z (Y₁₁ = −√(3/4π)·z) rotated by +90° about +Y points towards −X.
+        let mut sh = Sh::<1>::zeros(2);
+        sh.coeffs[index(1, 1)] = [1.0];
+        sh.rotate_y(PI / 2.0);
+        let k1 = (3.0 / (4.0 * PI)).sqrt() as f32;
+        assert!((sh.eval([-1.0, 0.0, 0.0])[0] - k1).abs() < 1e-6);
+        assert!(sh.eval([0.0, 0.0, -1.0])[0].abs() < 1e-6);
+    }
+
+    #[test]
+    fn hamming_window_matches_eq_6_1() {
+        assert_eq!(Window::Hamming.weight(0, 16), 1.0);
+        assert!((Window::Hamming.weight(15, 16) - 0.08).abs() < 1e-12);
+        assert_eq!(Window::None.weight(7, 16), 1.0);
+        assert_eq!(Window::Hamming.weight(0, 1), 1.0);
+    }
+
+    #[test]
+    fn bands_are_checked() {
+        assert!(check_bands(0).is_err());
+        assert!(check_bands(MAX_BANDS + 1).is_err());
+        assert!(check_bands(MAX_BANDS).is_ok());
+    }
+}

@@ -1,0 +1,199 @@
+//! Optical depth along world-space rays through a sparse grid: fixed steps on a lattice of
+//! positions measured from the ray origin, with empty 8³ blocks jumped over exactly — a jump only
+//! ever skips samples whose density is zero, so skipping changes no result.
+
+use glam::Vec3;
+
+use super::sparse::{Block, SparseGrid, LEAF_DIM, LEAF_LOG2};
+
+/// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
+/// under 1 % of the optical depth at one sample per voxel, and half a voxel halves that again.
+pub const STEP_VOXELS: f32 = 0.5;
+/// Rays stop once transmittance falls below this: what is left cannot change a transfer value by
+/// more than 1e-4 of full visibility.
+pub const MIN_TRANSMITTANCE: f32 = 1e-4;
+
+/// Integrates σt·ρ along rays.
+pub struct OpticalDepth<'a> {
+    grid: &'a SparseGrid,
+    sigma_t: f32,
+    /// World length of one step.
+    step: f32,
+    inv_scale: Vec3,
+    /// Index-space box outside which the density is zero (active bbox grown by one voxel).
+    lo: Vec3,
+    hi: Vec3,
+    skip_empty: bool,
+}
+
+impl<'a> OpticalDepth<'a> {
+    pub fn new(grid: &'a SparseGrid, sigma_t: f32, skip_empty: bool) -> Self {
+        let scale = grid.transform.scale.as_vec3();
+        let (lo, hi) = grid
+            .active_bbox()
+            .map(|(lo, hi)| (lo.as_vec3() - 1.0, hi.as_vec3() + 1.0))
+            .unwrap_or((Vec3::ONE, Vec3::ZERO));
+        OpticalDepth {
+            grid,
+            sigma_t,
+            step: STEP_VOXELS * scale.abs().min_element(),
+            inv_scale: scale.recip(),
+            lo,
+            hi,
+            skip_empty,
+        }
+    }
+
+    /// World distance along `dir` from index point `origin` to the far side of the density's box,
+    /// and the index-space velocity per world unit.
+    fn clip(&self, origin: Vec3, dir: Vec3) -> (f32, Vec3) {
+        let v = dir * self.inv_scale;
+        let mut exit = f32::INFINITY;
+        for a in 0..3 {
+            if v[a] > 0.0 {
+                exit = exit.min((self.hi[a] - origin[a]) / v[a]);
+            } else if v[a] < 0.0 {
+                exit = exit.min((self.lo[a] - origin[a]) / v[a]);
+            }
+        }
+        (exit.max(0.0), v)
+    }
+
+    /// Transmittance from index point `origin` toward world direction `dir` (unit) to infinity.
+    pub fn transmittance(&self, origin: Vec3, dir: Vec3) -> f32 {
+        let (exit, v) = self.clip(origin, dir);
+        (-self.integrate(origin, v, exit, -MIN_TRANSMITTANCE.ln())).exp()
+    }
+
+    /// Optical depth over the first `length` world units from `origin` along `dir` (unit).
+    pub fn optical_depth(&self, origin: Vec3, dir: Vec3, length: f32) -> f32 {
+        let (exit, v) = self.clip(origin, dir);
+        self.integrate(origin, v, exit.min(length), f32::INFINITY)
+    }
+
+    /// Midpoint-rule ∫ σt·ρ over [0, end] (world units), stopping past `cutoff`. Samples sit at
+    /// (k + ½)·step; the last partial step is weighted by its length.
+    fn integrate(&self, origin: Vec3, v: Vec3, end: f32, cutoff: f32) -> f32 {
+        if end <= 0.0 {
+            return 0.0;
+        }
+        let steps = (end / self.step).ceil() as u32;
+        let mut tau = 0.0f32;
+        let mut k = 0u32;
+        while k < steps {
+            let s = (k as f32 + 0.5) * self.step;
+            let p = origin + v * s;
+            if self.skip_empty {
+                if let Some(next) = self.skip_from(p, origin, v, k) {
+                    k = next;
+                    continue;
+                }
+            }
+            let len = if k + 1 == steps {
+                end - k as f32 * self.step
+            } else {
+                self.step
+            };
+            tau += self.sigma_t * self.grid.sample_index(p) * len;
+            if tau > cutoff {
+                break;
+            }
+            k += 1;
+        }
+        tau
+    }
+
+    /// If sample `k` at `p` lies where the density is certainly zero — inside the part of an empty
+    /// 8³ block whose trilinear cells read only that block — the index of the first sample past
+    /// that part; otherwise `None`.
+    fn skip_from(&self, p: Vec3, origin: Vec3, v: Vec3, k: u32) -> Option<u32> {
+        let cell = p.floor().as_ivec3();
+        let key = cell >> LEAF_LOG2 as i32;
+        let local = cell & (LEAF_DIM - 1);
+        if local.max_element() >= LEAF_DIM - 1 {
+            return None;
+        }
+        let empty = match self.grid.block(key) {
+            Block::Leaf(leaf) => leaf.max <= 0.0,
+            Block::Constant(c) => c <= 0.0,
+        };
+        if !empty {
+            return None;
+        }
+        // Exit of the box [8B, 8B + 7)³ in which every trilinear corner lies in block B.
+        let lo = (key * LEAF_DIM).as_vec3();
+        let hi = lo + (LEAF_DIM - 1) as f32;
+        let mut exit = f32::INFINITY;
+        for a in 0..3 {
+            if v[a] > 0.0 {
+                exit = exit.min((hi[a] - origin[a]) / v[a]);
+            } else if v[a] < 0.0 {
+                exit = exit.min((lo[a] - origin[a]) / v[a]);
+            }
+        }
+        // First sample at or past the exit; always advance at least one sample.
+        let next = ((exit / self.step) - 0.5).ceil().max(k as f32 + 1.0);
+        Some(next.min(u32::MAX as f32) as u32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::{TileLevel, Transform};
+    use glam::IVec3;
+
+    fn slab() -> SparseGrid {
+        // A 128³ tile of density 1 at x ∈ [128, 255], a few empty leaves' worth of space before it.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        g.insert_tile(TileLevel::Node, IVec3::new(128, 0, 0), 1.0);
+        g
+    }
+
+    #[test]
+    fn uniform_tile_has_analytic_depth() {
+        let g = slab();
+        let d = OpticalDepth::new(&g, 0.01, true);
+        // From x = 60 toward +x: density ramps 0→1 over [127, 128], is 1 to 255, ramps to 0 at 256.
+        // The ramps integrate to ½ each, so ∫ρ = 128 voxels exactly.
+        let tau = d.optical_depth(Vec3::new(60.0, 64.0, 64.0), Vec3::X, 1000.0);
+        assert!((tau - 1.28).abs() < 1e-4, "{tau}");
+        assert!(
+            (d.transmittance(Vec3::new(60.0, 64.0, 64.0), Vec3::X) - (-1.28f32).exp()).abs() < 1e-4
+        );
+    }
+
+    #[test]
+    fn skipping_changes_nothing() {
+        let mut g = slab();
+        let mut mask = [0u64; 8];
+        mask[3] = 0xff00_ff00_0000_00ff;
+        let mut values = [0.0; 512];
+        for (i, v) in values.iter_mut().enumerate() {
+            *v = (i % 7) as f32 * 0.1;
+        }
+        g.insert_leaf(IVec3::new(16, 56, 64), mask, values);
+        let skip = OpticalDepth::new(&g, 0.3, true);
+        let plain = OpticalDepth::new(&g, 0.3, false);
+        for i in 0..200 {
+            let a = i as f32 * 0.37;
+            let dir = Vec3::new(a.cos(), (a * 1.3).sin() * 0.3, a.sin()).normalize();
+            let o = Vec3::new(20.0 + (i % 5) as f32, 60.0, 66.0);
+            let (x, y) = (
+                skip.optical_depth(o, dir, 500.0),
+                plain.optical_depth(o, dir, 500.0),
+            );
+            assert_eq!(x, y, "ray {i}");
+        }
+    }
+
+    #[test]
+    fn world_units_follow_the_voxel_size() {
+        let mut g = slab();
+        g.transform.scale = glam::DVec3::splat(0.5);
+        let d = OpticalDepth::new(&g, 0.01, true);
+        // 128 voxels of density 1 are 64 world units: τ = 0.64.
+        let tau = d.optical_depth(Vec3::new(60.0, 64.0, 64.0), Vec3::X, 1000.0);
+        assert!((tau - 0.64).abs() < 1e-4, "{tau}");
+    }
+}
