@@ -12,6 +12,10 @@ const FRAMING_MARGIN: f32 = 0.05;
 /// Smallest half-extent used for framing, in world units relative to the box size (or absolute for
 /// a point-like box), so a flat or single-voxel box still gives a finite, positive distance.
 const MIN_HALF_EXTENT: f32 = 1e-6;
+/// Largest image accepted: 2²⁶ pixels (8192×8192 or any shape of that area). A frame with its
+/// layers takes 44 bytes per pixel, so this bounds the image memory at about 3 GB; a typo such as
+/// `--res 100000x100000` is a usage error, not an allocation failure.
+pub const MAX_PIXELS: u64 = 1 << 26;
 /// The R2 low-discrepancy sequence (Roberts 2018): generalised golden ratio steps. Any sample count
 /// is well stratified, which a square grid is not.
 const R2_ALPHA: Vec2 = Vec2::new(0.754_877_7, 0.569_840_3);
@@ -43,9 +47,9 @@ impl Camera {
         width: u32,
         height: u32,
     ) -> Result<Camera> {
-        if width == 0 || height == 0 {
+        if width == 0 || height == 0 || width as u64 * height as u64 > MAX_PIXELS {
             return Err(Error::usage(format!(
-                "resolution {width}x{height}: both sides must be at least 1"
+                "resolution {width}x{height}: both sides must be at least 1 and the image at most {MAX_PIXELS} pixels"
             )));
         }
         if !(fov_deg > 0.0 && fov_deg < 180.0) {
@@ -272,6 +276,7 @@ mod tests {
             Camera::look_at(Vec3::ZERO, Vec3::Z, Vec3::Y, 180.0, 10, 10),
             Camera::look_at(Vec3::ZERO, Vec3::Z, Vec3::Y, f32::NAN, 10, 10),
             Camera::look_at(Vec3::ZERO, Vec3::Z, Vec3::Y, 45.0, 0, 10),
+            Camera::look_at(Vec3::ZERO, Vec3::Z, Vec3::Y, 45.0, 100_000, 100_000),
             Camera::framing(Vec3::ZERO, Vec3::ONE, 10, 10, 0.0),
         ];
         for b in bad {

@@ -20,6 +20,7 @@
 use std::ops::ControlFlow;
 
 use glam::{DVec3, IVec3, Vec3};
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 
 use crate::render::camera::{hash_unit, pixel_offset, Camera, STREAM_STEP};
@@ -222,6 +223,10 @@ pub fn march_ray<S: InScatter>(
         return out;
     };
     let step = settings.step_voxels as f64 * xf.voxel_size().min_element();
+    // A zero or non-finite step would make the lattice endless; such a march sees nothing.
+    if !(step > 0.0 && step.is_finite()) {
+        return out;
+    }
     let jitter = jitter as f64;
     let step_f32 = step as f32;
     // First k whose t_k reaches `t`: t_entry + (k + ξ)·Δ ≥ t.
@@ -295,11 +300,22 @@ pub fn render<S: InScatter>(
     camera: &Camera,
     settings: &MarchSettings,
 ) -> (Frame, MarchStats) {
+    render_with_progress(scene, camera, settings, &ProgressBar::hidden())
+}
+
+/// [`render`], advancing `progress` by one per finished image tile (its length is set here).
+pub fn render_with_progress<S: InScatter>(
+    scene: &Scene<S>,
+    camera: &Camera,
+    settings: &MarchSettings,
+    progress: &ProgressBar,
+) -> (Frame, MarchStats) {
     let (w, h) = (camera.width, camera.height);
     let spp = settings.spp.max(1);
     let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE))
         .flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE)))
         .collect();
+    progress.set_length(tiles.len() as u64);
     let rendered: Vec<(Vec<Pixel>, MarchStats)> = tiles
         .par_iter()
         .map(|&(x0, y0)| {
@@ -310,9 +326,11 @@ pub fn render<S: InScatter>(
                     pixels.push(render_pixel(scene, camera, settings, spp, x, y, &mut stats));
                 }
             }
+            progress.inc(1);
             (pixels, stats)
         })
         .collect();
+    progress.finish_and_clear();
     let n = (w as usize) * (h as usize);
     let mut frame = Frame {
         width: w,
@@ -701,6 +719,31 @@ mod tests {
                 "{d}"
             );
         }
+    }
+
+    #[test]
+    fn a_degenerate_step_ends_instead_of_hanging() {
+        let g = unit_tile(Transform::default(), 1.0);
+        let occ = Occupancy::build(&g);
+        let source = Constant([[1.0; 3]; 2]);
+        let scene = Scene::new(&g, &occ, medium(1.0, 0.5), &source, None);
+        let mut stats = MarchStats::default();
+        for step_voxels in [0.0, f32::NAN, -1.0] {
+            let settings = MarchSettings {
+                step_voxels,
+                ..MarchSettings::default()
+            };
+            let r = march_ray(
+                &scene,
+                Vec3::new(64.0, 64.0, 500.0),
+                -Vec3::Z,
+                0.5,
+                &settings,
+                &mut stats,
+            );
+            assert_eq!(r.transmittance, 1.0);
+        }
+        assert_eq!(stats.samples_taken, 0);
     }
 
     #[test]

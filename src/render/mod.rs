@@ -70,7 +70,8 @@ pub struct RenderTimings {
 }
 
 /// Relights `transfer` under the environment `env_coeffs` (RGB SH, windowed and rotated) and
-/// marches `density` as `camera` sees it, with `background` behind the volume (`None`: alpha).
+/// marches `density` as `camera` sees it, with `background` behind the volume (`None`: alpha);
+/// `progress` counts image tiles.
 pub fn render_volume(
     density: &SparseGrid,
     transfer: &Transfer,
@@ -78,6 +79,7 @@ pub fn render_volume(
     background: Option<Background>,
     camera: &Camera,
     settings: &MarchSettings,
+    progress: &indicatif::ProgressBar,
 ) -> (Frame, MarchStats, RenderTimings) {
     let t = Instant::now();
     let occupancy = Occupancy::build(density);
@@ -91,7 +93,7 @@ pub fn render_volume(
     };
     let scene = Scene::new(density, &occupancy, transfer.medium, &source, background);
     let t = Instant::now();
-    let (frame, stats) = render(&scene, camera, settings);
+    let (frame, stats) = march::render_with_progress(&scene, camera, settings, progress);
     let timings = RenderTimings {
         occupancy: occupancy_time,
         relight: relight_time,
@@ -205,6 +207,7 @@ mod tests {
             Some(&bg),
             &cam,
             &MarchSettings::default(),
+            &indicatif::ProgressBar::hidden(),
         );
         assert_eq!(stats.rays, 24 * 16);
         for px in &frame.rgba {
