@@ -10,6 +10,8 @@ use crate::transfer::Transfer;
 /// Slots per rayon task: large enough that scheduling costs nothing next to the dot products.
 const SLOTS_PER_TASK: usize = 1024;
 
+/// Independent partial sums per dot product: eight f32 lanes fill one AVX or two SSE registers.
+const LANES: usize = 8;
 /// 1/(4π): the isotropic phase function.
 const INV_4PI: f32 = 1.0 / (4.0 * std::f32::consts::PI);
 
@@ -32,20 +34,32 @@ pub struct Radiance {
 /// positive weights, would print as dark fringes or negative pixels. Clamping each part separately
 /// keeps both EXR layers and their sum non-negative; it only adds light where the truth is ~0.
 ///
-/// Each slot's sums run in a fixed order inside one task, so the output is bit-identical for
-/// any thread count.
+/// Each slot's sums run in a fixed order (eight interleaved partial sums, then the tail) inside one
+/// task, so the output is bit-identical for any thread count.
 pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
     let stride = transfer.coeffs();
     let n = stride.min(env_coeffs.len());
-    let env = &env_coeffs[..n];
+    // Channel planes, so the dot products run as LANES independent sums the compiler vectorises.
+    let planes: [Vec<f32>; 3] =
+        std::array::from_fn(|c| env_coeffs[..n].iter().map(|e| e[c]).collect());
     let ls = |coeffs: &[f32]| -> [f32; 3] {
-        let mut acc = [0.0f32; 3];
-        for (t, e) in coeffs[..n].iter().zip(env) {
-            acc[0] += t * e[0];
-            acc[1] += t * e[1];
-            acc[2] += t * e[2];
-        }
-        acc.map(|v| (v * INV_4PI).max(0.0))
+        let t = &coeffs[..n];
+        let split = n - n % LANES;
+        std::array::from_fn(|c| {
+            let e = &planes[c];
+            let mut lanes = [0.0f32; LANES];
+            for (tc, ec) in t[..split]
+                .chunks_exact(LANES)
+                .zip(e[..split].chunks_exact(LANES))
+            {
+                for k in 0..LANES {
+                    lanes[k] += tc[k] * ec[k];
+                }
+            }
+            let tail: f32 = t[split..].iter().zip(&e[split..]).map(|(a, b)| a * b).sum();
+            let sum = lanes.iter().sum::<f32>() + tail;
+            (sum * INV_4PI).max(0.0)
+        })
     };
     let per_slot = |all: &[f32]| -> Vec<[f32; 3]> {
         if stride == 0 {
