@@ -20,6 +20,7 @@
 use std::ops::ControlFlow;
 
 use glam::{DVec3, IVec3, Vec3};
+use hashbrown::HashMap;
 use indicatif::ProgressBar;
 use rayon::prelude::*;
 
@@ -52,16 +53,38 @@ pub trait InScatter: Sync {
 /// Ls interpolated trilinearly from the per-transfer-voxel radiance of [`crate::render::relight`],
 /// with the weights of [`TransferLayout::corners`].
 pub struct TransferRadiance<'a> {
-    pub layout: &'a TransferLayout,
-    pub radiance: &'a Radiance,
+    k: f32,
+    radiance: &'a Radiance,
+    /// Per interpolation cell (key = its lowest transfer voxel), the slots of its eight corners
+    /// (`NO_SLOT` where none): one hash lookup when a ray enters a cell instead of eight.
+    cells: HashMap<IVec3, [u32; 8]>,
 }
 
-/// The slots of the eight transfer voxels around the last sample: a ray takes about 2K steps per
-/// transfer voxel, so the eight hash lookups are paid once per transfer cell, not per step.
+/// A cell corner without a transfer voxel: its radiance reads as zero.
+const NO_SLOT: u32 = u32::MAX;
+
+impl<'a> TransferRadiance<'a> {
+    pub fn new(layout: &TransferLayout, radiance: &'a Radiance) -> Self {
+        let mut cells: HashMap<IVec3, [u32; 8]> = HashMap::with_capacity(layout.len() * 2);
+        for (slot, v) in layout.voxels().iter().enumerate() {
+            for n in 0..8 {
+                cells.entry(*v - corner(n)).or_insert([NO_SLOT; 8])[n] = slot as u32;
+            }
+        }
+        TransferRadiance {
+            k: layout.k as f32,
+            radiance,
+            cells,
+        }
+    }
+}
+
+/// The corner slots of the cell holding the last sample: a ray takes about 2K steps per transfer
+/// voxel, so the lookup is paid once per cell crossed, not per step.
 #[derive(Default)]
 pub struct CornerCache {
     base: Option<IVec3>,
-    slots: [Option<usize>; 8],
+    slots: Option<[u32; 8]>,
 }
 
 impl InScatter for TransferRadiance<'_> {
@@ -69,20 +92,24 @@ impl InScatter for TransferRadiance<'_> {
 
     #[inline]
     fn radiance(&self, p: Vec3, cache: &mut CornerCache) -> [[f32; 3]; 2] {
-        let q = p / self.layout.k as f32;
+        let q = p / self.k;
         let b = floor_to_int(q);
         let f = q - b.as_vec3();
         if cache.base != Some(b) {
             cache.base = Some(b);
-            cache.slots = std::array::from_fn(|n| self.layout.slot(b + corner(n)));
+            cache.slots = self.cells.get(&b).copied();
         }
         let mut out = [[0.0f32; 3]; 2];
-        for (n, slot) in cache.slots.iter().enumerate() {
+        let Some(slots) = cache.slots else {
+            return out;
+        };
+        for (n, &slot) in slots.iter().enumerate() {
             // A missing corner's data reads as zero; the apron makes that rare inside the medium.
-            if let Some(s) = *slot {
+            if slot != NO_SLOT {
                 let c = corner(n);
                 let w = |bit: i32, t: f32| if bit == 1 { t } else { 1.0 - t };
                 let w = w(c.x, f.x) * w(c.y, f.y) * w(c.z, f.z);
+                let s = slot as usize;
                 let (d, i) = (self.radiance.direct[s], self.radiance.indirect[s]);
                 for ch in 0..3 {
                     out[0][ch] += w * d[ch];
@@ -232,6 +259,8 @@ pub fn march_ray<S: InScatter>(
     // First k whose t_k reaches `t`: t_entry + (k + ξ)·Δ ≥ t.
     let k_at = |t: f64| ((t - t_entry) / step - jitter).ceil().max(0.0) as u64;
     let k_end = k_at(t_exit);
+    let entry = (o + d * t_entry).as_vec3();
+    let d32 = d.as_vec3();
     let Medium { sigma_t, albedo } = scene.medium;
     let mut tr = 1.0f32;
     let (mut depth_sum, mut weight_sum) = (0.0f64, 0.0f64);
@@ -245,8 +274,11 @@ pub fn march_ray<S: InScatter>(
         let k_lo = k_at(t_a).max(next_k);
         for k in k_lo..k_hi {
             taken += 1;
-            let t = t_entry + (k as f64 + jitter) * step;
-            let p = (o + d * t).as_vec3();
+            // Position from the entry point in f32: exact enough (the DDA's dilation leaves a voxel
+            // of slack) and the same arithmetic whether or not steps are skipped.
+            let s = ((k as f64 + jitter) * step) as f32;
+            let p = entry + d32 * s;
+            let t = t_entry + s as f64;
             let rho = sampler.sample(p);
             if rho > 0.0 {
                 let tau = sigma_t * rho * step_f32;
@@ -758,10 +790,7 @@ mod tests {
                 .collect(),
             indirect: vec![[0.25; 3]; layout.len()],
         };
-        let src = TransferRadiance {
-            layout: &layout,
-            radiance: &radiance,
-        };
+        let src = TransferRadiance::new(&layout, &radiance);
         // Direct red is the transfer-voxel x coordinate: trilinear reproduces x / K.
         let mut cache = CornerCache::default();
         let p = Vec3::new(33.0, 20.5, 70.25);

@@ -87,10 +87,7 @@ pub fn render_volume(
     let t = Instant::now();
     let radiance = relight(transfer, env_coeffs);
     let relight_time = t.elapsed();
-    let source = march::TransferRadiance {
-        layout: &transfer.layout,
-        radiance: &radiance,
-    };
+    let source = march::TransferRadiance::new(&transfer.layout, &radiance);
     let scene = Scene::new(density, &occupancy, transfer.medium, &source, background);
     let t = Instant::now();
     let (frame, stats) = march::render_with_progress(&scene, camera, settings, progress);
