@@ -35,6 +35,8 @@ pub struct GlobalArgs {
 pub enum Command {
     /// Describe a VDB file: grids, types, transforms, bounding boxes, active voxels, tiles, memory.
     Info(InfoArgs),
+    /// Project an environment map onto SH and write its reconstruction (thesis fig. 6.4).
+    Env(EnvArgs),
 }
 
 #[derive(Debug, Args)]
@@ -47,6 +49,34 @@ pub struct InfoArgs {
     /// Describe only this grid, as the density that `render` would read (it must be scalar).
     #[arg(long, value_name = "NAME")]
     pub grid: Option<String>,
+}
+
+/// `vscatter env ENV -o RECON.(exr|png)`.
+#[derive(Debug, Args)]
+pub struct EnvArgs {
+    /// Latlong environment: an OpenEXR or Radiance .hdr file, or `sky` for the built-in sky.
+    #[arg(value_name = "ENV")]
+    pub env: String,
+    /// Where to write the reconstruction, the same size as the input (.exr linear, .png tonemapped).
+    #[arg(short, long, value_name = "RECON")]
+    pub output: PathBuf,
+    /// SH bands (bands² coefficients), 1 to 20.
+    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
+    pub bands: usize,
+    /// Windowing of the coefficients against ringing (thesis eq. 6.1).
+    #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
+    pub window: crate::sh::Window,
+    /// Exposure in stops for PNG output.
+    #[arg(
+        long,
+        value_name = "EV",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    pub exposure: f32,
+    /// Also write the input map itself (after clamping bad pixels), for side-by-side figures.
+    #[arg(long, value_name = "PATH")]
+    pub original: Option<PathBuf>,
 }
 
 impl GlobalArgs {

@@ -3,6 +3,8 @@
 
 pub mod atomic;
 pub mod cli;
+pub mod env;
+pub mod env_cmd;
 pub mod error;
 pub mod image;
 pub mod info;
@@ -25,5 +27,6 @@ pub fn run(cli: Cli) -> Result<()> {
         .build_global();
     match cli.command {
         Command::Info(args) => info::run(&args),
+        Command::Env(args) => env_cmd::run(&args),
     }
 }

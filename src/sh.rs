@@ -304,19 +304,22 @@ impl<const N: usize> Sh<N> {
                 let (theta, _, _) = latlong_row(row, height);
                 let mut legendre = vec![0.0; tri(bands, 0)];
                 legendre_row(theta.cos(), theta.sin(), bands, &mut legendre);
-                // re[m][c], im[m][c]: this row's amplitude of cos(mφ) and sin(mφ).
-                let mut re = vec![[0.0f64; N]; bands];
-                let mut im = vec![[0.0f64; N]; bands];
+                // This row's amplitude of cos(mφ) and sin(mφ), laid out [channel * bands + m] so
+                // the per-pixel sum over m below runs over contiguous memory.
+                let mut re = vec![0.0f64; N * bands];
+                let mut im = vec![0.0f64; N * bands];
                 for l in 0..bands {
                     for m in 0..=l {
                         let p = legendre[tri(l, m)];
                         for c in 0..N {
                             if m == 0 {
-                                re[0][c] += p * self.coeffs[index(l, 0)][c] as f64;
+                                re[c * bands] += p * self.coeffs[index(l, 0)][c] as f64;
                             } else {
                                 let p2 = std::f64::consts::SQRT_2 * p;
-                                re[m][c] += p2 * self.coeffs[index(l, m as isize)][c] as f64;
-                                im[m][c] += p2 * self.coeffs[index(l, -(m as isize))][c] as f64;
+                                re[c * bands + m] +=
+                                    p2 * self.coeffs[index(l, m as isize)][c] as f64;
+                                im[c * bands + m] +=
+                                    p2 * self.coeffs[index(l, -(m as isize))][c] as f64;
                             }
                         }
                     }
@@ -326,12 +329,13 @@ impl<const N: usize> Sh<N> {
                         &cos_tab[col * bands..][..bands],
                         &sin_tab[col * bands..][..bands],
                     );
-                    for c in 0..N {
-                        let mut v = 0.0;
+                    for (c, v) in px.iter_mut().enumerate() {
+                        let (rc, ic) = (&re[c * bands..][..bands], &im[c * bands..][..bands]);
+                        let mut sum = 0.0;
                         for m in 0..bands {
-                            v += re[m][c] * ct[m] + im[m][c] * st[m];
+                            sum += rc[m] * ct[m] + ic[m] * st[m];
                         }
-                        px[c] = v as f32;
+                        *v = sum as f32;
                     }
                 }
             });
@@ -439,6 +443,15 @@ impl RowScratch {
     }
 }
 
+/// Rotates `dir` about +Y by `angle` radians, right-handed (counter-clockwise seen from above):
+/// −Z turns towards −X. An environment turned by `--env-rotate α` sends radiance arriving from
+/// `dir` that the unrotated map sends from `rotate_dir_y(dir, −α)` (see [`Sh::rotate_y`]).
+pub fn rotate_dir_y(dir: [f64; 3], angle: f64) -> [f64; 3] {
+    let (s, c) = angle.sin_cos();
+    let [x, y, z] = dir;
+    [c * x + s * z, y, -s * x + c * z]
+}
+
 /// The unit direction of spherical angles (θ from +Y, φ per the latlong mapping).
 pub fn direction(theta: f64, phi: f64) -> [f64; 3] {
     let (st, ct) = theta.sin_cos();
@@ -542,8 +555,8 @@ mod tests {
         }
     }
 
-    /// The basis sampled at pixel centres as a map with one channel per basis function would be
-    /// too big; instead project Y_j maps one at a time and take the worst Gram error.
+    /// Worst |Σ_pixels Yᵢ·Yⱼ·ΔΩ − δᵢⱼ| of the map quadrature on a 2H×H latlong: each Yⱼ is sampled
+    /// at the pixel centres and projected like an environment.
     fn pixel_quadrature_error(bands: usize, height: usize) -> f64 {
         let width = 2 * height;
         let n = coeff_count(bands);
@@ -721,6 +734,23 @@ mod tests {
         let k1 = (3.0 / (4.0 * PI)).sqrt() as f32;
         assert!((sh.eval([-1.0, 0.0, 0.0])[0] - k1).abs() < 1e-6);
         assert!(sh.eval([0.0, 0.0, -1.0])[0].abs() < 1e-6);
+    }
+
+    #[test]
+    fn rotated_coefficients_equal_lookup_at_counter_rotated_direction() {
+        let bands = 6;
+        let c = random_coeffs(bands, 5);
+        let mut sh = Sh::<1> {
+            bands,
+            coeffs: c.iter().map(|&v| [v as f32]).collect(),
+        };
+        let original = sh.clone();
+        let alpha = 0.7;
+        sh.rotate_y(alpha);
+        for d in [direction(0.3, 1.0), direction(2.0, 5.5), [0.0, 0.0, -1.0]] {
+            let want = original.eval(rotate_dir_y(d, -alpha))[0];
+            assert!((sh.eval(d)[0] - want).abs() < 1e-5, "{d:?}");
+        }
     }
 
     #[test]

@@ -1,38 +1,47 @@
 //! The integration tests: one binary that runs the real `vscatter` program in temporary
 //! directories, plus cross-checks of the library against independent references.
 
+#[path = "cli/bake.rs"]
+mod bake;
+#[path = "cli/env.rs"]
+mod env;
 #[path = "cli/vdb.rs"]
 mod vdb;
 
 use std::path::{Path, PathBuf};
-use std::process::Output;
+use std::process::{Command, Output};
 
-/// The repository's fixtures directory.
+/// A file in the repository's fixtures directory.
 pub fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("fixtures")
         .join(name)
 }
 
-/// Runs the real binary with `args`.
+/// Runs the real binary with `args` in the current directory.
 pub fn vscatter(args: &[&str]) -> Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_vscatter"))
+    vscatter_in(Path::new("."), args)
+}
+
+/// Runs the real binary with `args`, with `dir` as working directory.
+pub fn vscatter_in(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vscatter"))
         .args(args)
-        .env("NO_COLOR", "1")
+        .current_dir(dir)
         .output()
         .expect("the vscatter binary runs")
+}
+
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
 /// Asserts a failure the way users must see it: the exit code, one line on stderr naming `names`,
 /// and no panic message.
 pub fn assert_clean_failure(out: &Output, code: i32, names: &str) {
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(code), "stderr: {stderr}");
-    assert!(!stderr.contains("panicked"), "panic: {stderr}");
-    assert_eq!(
-        stderr.trim_end().lines().count(),
-        1,
-        "not one line: {stderr}"
-    );
-    assert!(stderr.contains(names), "{stderr:?} does not name {names:?}");
+    let err = stderr(out);
+    assert_eq!(out.status.code(), Some(code), "stderr: {err}");
+    assert!(!err.contains("panicked"), "panic: {err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "not one line: {err}");
+    assert!(err.contains(names), "{err:?} does not name {names:?}");
 }

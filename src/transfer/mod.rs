@@ -3,6 +3,7 @@
 //! scattering events (`f_ms`, thesis 4.2) — independent of any environment.
 
 pub mod grid;
+pub mod lattice;
 pub mod single;
 
 pub use grid::TransferLayout;
@@ -43,4 +44,75 @@ impl Transfer {
         let n = self.coeffs();
         &self.f_ms[slot * n..(slot + 1) * n]
     }
+}
+
+/// How to bake: the flags of `vscatter bake`, validated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BakeSettings {
+    pub bands: usize,
+    /// Density voxels per transfer voxel along each axis (K).
+    pub scale: i32,
+    pub samples: usize,
+    pub lattice: lattice::LatticeKind,
+    pub single_scatter: bool,
+    pub seed: u64,
+}
+
+/// What a bake did, for `--stats`.
+#[derive(Debug, Clone, Default)]
+pub struct BakeStats {
+    pub layout_seconds: f64,
+    pub single_seconds: f64,
+    pub lattice_seconds: f64,
+    pub transfer_voxels: usize,
+    pub transfer_tiles: usize,
+    pub lattice: Option<lattice::LatticeStats>,
+}
+
+/// Bakes the transfer of `density`: layout, T_ri, then (unless single-scatter) F_ms.
+pub fn bake(
+    density: &crate::volume::SparseGrid,
+    medium: Medium,
+    settings: &BakeSettings,
+    quiet: bool,
+) -> (Transfer, BakeStats) {
+    let mut stats = BakeStats::default();
+    let clock = std::time::Instant::now();
+    let layout = TransferLayout::build(density, settings.scale);
+    stats.layout_seconds = clock.elapsed().as_secs_f64();
+    stats.transfer_voxels = layout.len();
+    stats.transfer_tiles = layout.tile_count();
+    let coeffs = settings.bands * settings.bands;
+
+    let clock = std::time::Instant::now();
+    let bar = crate::progress::bar(layout.len() as u64, "single", quiet);
+    let single = single::SingleSettings {
+        bands: settings.bands,
+        samples: settings.samples,
+        seed: settings.seed,
+        skip_empty: true,
+    };
+    let t_ri = single::bake_single(density, &layout, medium, single, &bar);
+    bar.finish_and_clear();
+    stats.single_seconds = clock.elapsed().as_secs_f64();
+
+    let clock = std::time::Instant::now();
+    let f_ms = match settings.single_scatter {
+        true => vec![0.0; t_ri.len()],
+        false => {
+            let (f_ms, lattice_stats) =
+                lattice::bake_multiple(density, &layout, medium, settings.lattice, &t_ri, coeffs);
+            stats.lattice = Some(lattice_stats);
+            f_ms
+        }
+    };
+    stats.lattice_seconds = clock.elapsed().as_secs_f64();
+    let transfer = Transfer {
+        layout,
+        bands: settings.bands,
+        medium,
+        t_ri,
+        f_ms,
+    };
+    (transfer, stats)
 }

@@ -1,0 +1,554 @@
+//! Environment maps (DESIGN.md "Environment"): latitude–longitude radiance images read from OpenEXR
+//! or Radiance `.hdr`, or the built-in procedural sky; bilinear lookup by direction; projection onto
+//! SH by the deterministic pixel quadrature of [`crate::sh`].
+
+use std::f64::consts::PI;
+use std::fs::File;
+use std::io::{BufRead, BufReader, Read};
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::sh::{self, ShRgb};
+
+/// The `--env` value that selects the built-in sky instead of a file.
+pub const SKY_SPEC: &str = "sky";
+
+/// The largest map accepted: 16384×8192 RGB f32 is 1.6 GB, already beyond any production HDRI
+/// (16k maps are the largest in common use); a forged header asking for more is refused before
+/// any allocation.
+pub const MAX_ENV_PIXELS: usize = 16384 * 8192;
+
+/// Finite stand-in for +Inf radiance. Large enough to dominate any real map, small enough that
+/// sums over a whole map (≤ 2²⁷ pixels, weights ≤ 4π, |Yᵢ| < 2 up to 20 bands) stay finite in f32.
+pub const RADIANCE_CAP: f32 = 1.0e30;
+
+/// Built-in sky resolution: 0.7° per pixel resolves the sun disc and far exceeds what 20 SH bands
+/// (≈ 9° features) can carry.
+const SKY_WIDTH: usize = 512;
+const SKY_HEIGHT: usize = 256;
+
+/// A latitude–longitude radiance map, linear RGB, row 0 at the zenith (+Y).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Environment {
+    width: usize,
+    height: usize,
+    pixels: Vec<[f32; 3]>,
+}
+
+/// How many pixel values [`Environment::from_pixels`] had to repair.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Repairs {
+    pub nan: usize,
+    pub infinite: usize,
+    pub negative: usize,
+}
+
+impl Repairs {
+    pub fn total(&self) -> usize {
+        self.nan + self.infinite + self.negative
+    }
+}
+
+impl Environment {
+    /// `spec` is [`SKY_SPEC`] for the built-in sky, else the path of a latlong `.exr` or `.hdr`
+    /// (recognised by content, not extension). Bad pixel values are repaired with one warning on
+    /// stderr; see [`Environment::from_pixels`].
+    pub fn load(spec: &str) -> Result<Self> {
+        if spec == SKY_SPEC {
+            return Ok(Self::sky());
+        }
+        let path = Path::new(spec);
+        let (env, repairs) = Self::read_file(path)?;
+        if repairs.total() > 0 {
+            eprintln!(
+                "vscatter: warning: {}: {} NaN, {} infinite and {} negative pixel values clamped \
+                 (NaN and negative to 0, +Inf to {RADIANCE_CAP:e})",
+                path.display(),
+                repairs.nan,
+                repairs.infinite,
+                repairs.negative
+            );
+        }
+        Ok(env)
+    }
+
+    /// Reads a latlong OpenEXR (RGB or RGBA, any sample type; first RGB layer) or Radiance `.hdr`.
+    pub fn read_file(path: &Path) -> Result<(Self, Repairs)> {
+        let mut magic = [0u8; 4];
+        let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let n = read_up_to(&mut file, &mut magic).map_err(|e| Error::io(path, e))?;
+        let (width, height, pixels) = if n == 4 && magic == [0x76, 0x2f, 0x31, 0x01] {
+            read_exr(path)?
+        } else if n >= 2 && &magic[..2] == b"#?" {
+            read_hdr(path)?
+        } else {
+            return Err(Error::format(
+                path,
+                "not an OpenEXR or Radiance .hdr image (unknown magic number)",
+            ));
+        };
+        Self::from_pixels(width, height, pixels).map_err(|e| match e {
+            Error::Runtime(msg) => Error::format(path, msg),
+            other => other,
+        })
+    }
+
+    /// A map from raw pixels (row-major, `width·height`). NaN and negative values become 0 and
+    /// ±Inf becomes [`RADIANCE_CAP`] (−Inf, being negative, 0): radiance is never negative, and one
+    /// bad pixel must not poison every SH coefficient.
+    pub fn from_pixels(
+        width: usize,
+        height: usize,
+        mut pixels: Vec<[f32; 3]>,
+    ) -> Result<(Self, Repairs)> {
+        if width == 0 || height == 0 || pixels.len() != width * height {
+            return Err(Error::Runtime(format!(
+                "a {width}x{height} environment needs {} pixels, got {}",
+                width * height,
+                pixels.len()
+            )));
+        }
+        let mut repairs = Repairs::default();
+        for v in pixels.iter_mut().flatten() {
+            if v.is_nan() {
+                repairs.nan += 1;
+                *v = 0.0;
+            } else if *v == f32::INFINITY {
+                repairs.infinite += 1;
+                *v = RADIANCE_CAP;
+            } else if *v < 0.0 {
+                repairs.negative += 1;
+                *v = 0.0;
+            } else if *v > RADIANCE_CAP {
+                *v = RADIANCE_CAP;
+            }
+        }
+        Ok((
+            Environment {
+                width,
+                height,
+                pixels,
+            },
+            repairs,
+        ))
+    }
+
+    /// The built-in sky at its default resolution.
+    pub fn sky() -> Self {
+        Self::sky_with_size(SKY_WIDTH, SKY_HEIGHT)
+    }
+
+    /// The built-in sky sampled at `width × height` (≥ 1 each): the same function at any size, so
+    /// benchmarks can build large maps without files.
+    pub fn sky_with_size(width: usize, height: usize) -> Self {
+        let (width, height) = (width.max(1), height.max(1));
+        let mut pixels = Vec::with_capacity(width * height);
+        // Soften the sun's edge over about one pixel, so it does not alias into a jagged disc.
+        let pixel_angle = PI / height as f64;
+        for row in 0..height {
+            let (theta, _, _) = sh::latlong_row(row, height);
+            for col in 0..width {
+                let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
+                pixels.push(sky_radiance(sh::direction(theta, phi), pixel_angle));
+            }
+        }
+        Environment {
+            width,
+            height,
+            pixels,
+        }
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// The pixels, row-major, row 0 at the zenith.
+    pub fn pixels(&self) -> &[[f32; 3]] {
+        &self.pixels
+    }
+
+    /// Bilinear radiance arriving from the unit direction `dir`; periodic in u, clamped in v.
+    pub fn lookup(&self, dir: [f64; 3]) -> [f32; 3] {
+        let (u, v) = dir_to_uv(dir);
+        let x = u * self.width as f64 - 0.5;
+        let y = (v * self.height as f64 - 0.5).clamp(0.0, (self.height - 1) as f64);
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
+        let w = self.width as i64;
+        let c0 = (x0 as i64).rem_euclid(w) as usize;
+        let c1 = (x0 as i64 + 1).rem_euclid(w) as usize;
+        let r0 = y0 as usize;
+        let r1 = (r0 + 1).min(self.height - 1);
+        let p = |r: usize, c: usize| self.pixels[r * self.width + c];
+        let mut out = [0.0; 3];
+        for (k, o) in out.iter_mut().enumerate() {
+            let top = p(r0, c0)[k] * (1.0 - fx) + p(r0, c1)[k] * fx;
+            let bottom = p(r1, c0)[k] * (1.0 - fx) + p(r1, c1)[k] * fx;
+            *o = top * (1.0 - fy) + bottom * fy;
+        }
+        out
+    }
+
+    /// [`Environment::lookup`] of the map turned by `angle` radians about +Y, with the convention
+    /// of [`crate::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
+    /// background matches rotated SH lighting.
+    pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
+        self.lookup(sh::rotate_dir_y(dir, -angle))
+    }
+
+    /// SH coefficients of the map (pixel-centre values times exact pixel solid angles).
+    /// Panics if `bands > sh::MAX_BANDS`; callers validate with [`sh::check_bands`].
+    pub fn project(&self, bands: usize) -> ShRgb {
+        ShRgb::project_latlong(self.width, self.height, bands, &self.pixels)
+    }
+
+    /// Relative L2 difference between this map and `other` (same size) over the sphere: each pixel
+    /// weighted by its solid angle, all three channels together.
+    pub fn relative_l2_error(&self, other: &[[f32; 3]]) -> f64 {
+        let (mut diff, mut norm) = (0.0f64, 0.0f64);
+        for row in 0..self.height {
+            let w = sh::latlong_pixel_solid_angle(row, self.width, self.height);
+            let range = row * self.width..(row + 1) * self.width;
+            for (a, b) in self.pixels[range.clone()].iter().zip(&other[range]) {
+                for k in 0..3 {
+                    diff += w * (a[k] as f64 - b[k] as f64).powi(2);
+                    norm += w * (a[k] as f64).powi(2);
+                }
+            }
+        }
+        if norm > 0.0 {
+            (diff / norm).sqrt()
+        } else {
+            diff.sqrt()
+        }
+    }
+}
+
+/// Latlong (u, v) ∈ [0,1)×[0,1] of a unit direction: θ = acos(y), φ = atan2(x, −z) (DESIGN.md).
+pub fn dir_to_uv(dir: [f64; 3]) -> (f64, f64) {
+    let [x, y, z] = dir;
+    let theta = y.clamp(-1.0, 1.0).acos();
+    let phi = x.atan2(-z).rem_euclid(2.0 * PI);
+    (phi / (2.0 * PI), theta / PI)
+}
+
+/// Reads into `buf` until it is full or the file ends; returns the count.
+fn read_up_to(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match r.read(&mut buf[n..])? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    Ok(n)
+}
+
+fn check_size(path: &Path, width: usize, height: usize) -> Result<()> {
+    if width == 0 || height == 0 || width.saturating_mul(height) > MAX_ENV_PIXELS {
+        return Err(Error::format(
+            path,
+            format!("{width}x{height} is not a usable environment size (at most {MAX_ENV_PIXELS} pixels)"),
+        ));
+    }
+    Ok(())
+}
+
+type Pixels = (usize, usize, Vec<[f32; 3]>);
+
+fn read_exr(path: &Path) -> Result<Pixels> {
+    use exr::prelude::{read_first_rgba_layer_from_file, MetaData};
+    let bad = |e: exr::error::Error| match e {
+        exr::error::Error::Io(io) if io.kind() != std::io::ErrorKind::UnexpectedEof => {
+            Error::io(path, io)
+        }
+        exr::error::Error::Io(_) => Error::format(path, "truncated OpenEXR file"),
+        other => Error::format(
+            path,
+            format!("unreadable OpenEXR file (truncated or corrupt?): {other}"),
+        ),
+    };
+    // Check the sizes in the headers before the pixel reader allocates anything; every part, since
+    // the reader takes the first one with R, G, B channels, which need not be the first.
+    let meta = MetaData::read_from_file(path, false).map_err(bad)?;
+    if meta.headers.is_empty() {
+        return Err(Error::format(path, "OpenEXR file has no image part"));
+    }
+    for header in &meta.headers {
+        check_size(path, header.layer_size.width(), header.layer_size.height())?;
+    }
+    let image = read_first_rgba_layer_from_file(
+        path,
+        |size, _| {
+            (
+                size.width(),
+                vec![[0.0f32; 3]; size.width() * size.height()],
+            )
+        },
+        |(w, px): &mut (usize, Vec<[f32; 3]>), pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+            px[pos.y() * *w + pos.x()] = [r, g, b];
+        },
+    )
+    .map_err(|e| match e {
+        // exr's words for "no part has the channels asked for".
+        exr::error::Error::Invalid(msg) if msg.contains("no layer") => {
+            Error::format(path, "OpenEXR file has no layer with R, G and B channels")
+        }
+        other => bad(other),
+    })?;
+    let size = image.layer_data.size;
+    Ok((
+        size.width(),
+        size.height(),
+        image.layer_data.channel_data.pixels.1,
+    ))
+}
+
+fn read_hdr(path: &Path) -> Result<Pixels> {
+    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut reader = BufReader::new(file);
+    let (width, height) = hdr_size(path, &mut reader)?;
+    check_size(path, width, height)?;
+    // The size is known to be sane: let the decoder read from the start.
+    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let image = radiant::load(BufReader::new(file))
+        .map_err(|e| Error::format(path, format!("unreadable Radiance .hdr file: {e}")))?;
+    if image.width != width || image.height != height {
+        return Err(Error::format(path, "inconsistent Radiance .hdr header"));
+    }
+    let pixels = image.data.iter().map(|p| [p.r, p.g, p.b]).collect();
+    Ok((width, height, pixels))
+}
+
+/// The resolution line of a Radiance header ("-Y H +X W", the only orientation accepted — and
+/// the only one in practice), read with bounded line lengths so a file without newlines cannot
+/// make it allocate.
+fn hdr_size(path: &Path, reader: &mut impl BufRead) -> Result<(usize, usize)> {
+    const MAX_HEADER_LINE: u64 = 4096;
+    const MAX_HEADER_LINES: usize = 1024;
+    let bad = || Error::format(path, "malformed Radiance .hdr header");
+    let mut seen_blank = false;
+    for _ in 0..MAX_HEADER_LINES {
+        let mut line = Vec::new();
+        let n = reader
+            .by_ref()
+            .take(MAX_HEADER_LINE)
+            .read_until(b'\n', &mut line)
+            .map_err(|e| Error::io(path, e))?;
+        if n == 0 || line.last() != Some(&b'\n') {
+            return Err(bad());
+        }
+        let text = String::from_utf8_lossy(&line);
+        let text = text.trim();
+        if !seen_blank {
+            seen_blank = text.is_empty();
+            continue;
+        }
+        let fields: Vec<&str> = text.split_whitespace().collect();
+        return match fields.as_slice() {
+            ["-Y", h, "+X", w] => match (h.parse(), w.parse()) {
+                (Ok(h), Ok(w)) => Ok((w, h)),
+                _ => Err(bad()),
+            },
+            _ => Err(Error::format(
+                path,
+                "unsupported Radiance .hdr orientation (only \"-Y H +X W\")",
+            )),
+        };
+    }
+    Err(bad())
+}
+
+/// Built-in sky parameters. The sun stands 35° high — a late-morning sun that lights a cloud from
+/// the side and above — at azimuth 120° (from −Z towards +X and on, so it is to the right of and
+/// behind the default camera, which looks down −Z).
+const SUN_ELEVATION_DEG: f64 = 35.0;
+const SUN_AZIMUTH_DEG: f64 = 120.0;
+/// Angular radius of the disc: 4× the real sun's 0.27°, so it spans a few pixels of the default map.
+const SUN_RADIUS_DEG: f64 = 1.1;
+/// Sun radiance: a warm white (about 4500 K). Over the disc's 1.16e-3 sr it gives a normal
+/// irradiance of ≈ 7, some 3–4× what the whole dome gives a horizontal surface (≈ 2): a clear-day
+/// balance of sharp key light and soft blue fill.
+const SUN_RADIANCE: [f64; 3] = [6000.0, 5250.0, 4050.0];
+const ZENITH: [f64; 3] = [0.25, 0.45, 1.0];
+const HORIZON: [f64; 3] = [0.85, 0.92, 1.05];
+const GROUND: [f64; 3] = [0.16, 0.14, 0.12];
+/// Width of the horizon blend, in units of y = cosθ (≈ 1.7°): avoids a hard ring that would ring in SH.
+const HORIZON_BLEND: f64 = 0.03;
+
+/// Radiance of the built-in sky from direction `d`; `pixel_angle` (radians) softens the sun's edge.
+fn sky_radiance(d: [f64; 3], pixel_angle: f64) -> [f32; 3] {
+    let y = d[1];
+    // Sky: zenith blue fading to a pale horizon; (1 − y)³ keeps most of the dome saturated.
+    let t = (1.0 - y.max(0.0)).powi(3);
+    let sky: [f64; 3] = std::array::from_fn(|k| ZENITH[k] * (1.0 - t) + HORIZON[k] * t);
+    let s = smoothstep(-HORIZON_BLEND, HORIZON_BLEND, y);
+    let mut c: [f64; 3] = std::array::from_fn(|k| GROUND[k] * (1.0 - s) + sky[k] * s);
+    let sun = sh::direction(
+        (90.0 - SUN_ELEVATION_DEG).to_radians(),
+        SUN_AZIMUTH_DEG.to_radians(),
+    );
+    let cos_angle = (d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]).clamp(-1.0, 1.0);
+    let r = SUN_RADIUS_DEG.to_radians();
+    let soft = pixel_angle.max(1e-6);
+    let disc = 1.0 - smoothstep(r - 0.5 * soft, r + 0.5 * soft, cos_angle.acos());
+    for k in 0..3 {
+        c[k] += disc * SUN_RADIANCE[k];
+    }
+    c.map(|v| v as f32)
+}
+
+fn smoothstep(a: f64, b: f64, x: f64) -> f64 {
+    let t = ((x - a) / (b - a)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture(name: &str) -> String {
+        format!("{}/fixtures/env/{name}", env!("CARGO_MANIFEST_DIR"))
+    }
+
+    #[test]
+    fn lookup_hits_pixel_centres_and_wraps_in_u() {
+        let (w, h) = (8, 4);
+        let px: Vec<[f32; 3]> = (0..w * h).map(|i| [i as f32, 0.0, 1.0]).collect();
+        let (env, _) = Environment::from_pixels(w, h, px).unwrap();
+        // Centre of pixel (col 3, row 1).
+        let theta = PI * 1.5 / h as f64;
+        let phi = 2.0 * PI * 3.5 / w as f64;
+        assert!((env.lookup(sh::direction(theta, phi))[0] - 11.0).abs() < 1e-4);
+        // u = 0 lies halfway between the last and the first column: no seam.
+        let v = env.lookup(sh::direction(theta, 1e-9))[0];
+        assert!((v - 0.5 * (8.0 + 15.0)).abs() < 1e-3, "{v}");
+        // Straight up clamps to row 0.
+        assert!(env.lookup([0.0, 1.0, 0.0])[0] < 8.0);
+    }
+
+    #[test]
+    fn rotated_lookup_agrees_with_rotated_coefficients() {
+        let env = Environment::load(&fixture("studio.exr")).unwrap();
+        let alpha = 1.3;
+        let sh0 = env.project(12);
+        let mut sh1 = sh0.clone();
+        sh1.rotate_y(alpha);
+        // Compare the band-limited versions: rotating the coefficients must equal looking the
+        // unrotated band-limited map up at the counter-rotated direction.
+        let d = sh::direction(1.2, 0.4);
+        let a = sh1.eval(d);
+        let b = sh0.eval(sh::rotate_dir_y(d, -alpha));
+        for k in 0..3 {
+            assert!((a[k] - b[k]).abs() < 1e-4 * (1.0 + b[k].abs()));
+        }
+        // And the map itself: the light at azimuth 60° (φ) appears at 60° − α after rotation.
+        let light = sh::direction((90.0f64 - 30.0).to_radians(), 60f64.to_radians());
+        let moved = sh::direction((90.0f64 - 30.0).to_radians(), 60f64.to_radians() - alpha);
+        assert!((env.lookup_rotated(moved, alpha)[0] - env.lookup(light)[0]).abs() < 1e-3);
+    }
+
+    #[test]
+    fn bad_pixels_are_repaired_and_counted() {
+        let px = vec![
+            [f32::NAN, f32::INFINITY, -1.0],
+            [f32::NEG_INFINITY, 2.0, 3.0],
+        ];
+        let (env, rep) = Environment::from_pixels(2, 1, px).unwrap();
+        assert_eq!(
+            rep,
+            Repairs {
+                nan: 1,
+                infinite: 1,
+                negative: 2
+            }
+        );
+        assert_eq!(env.pixels()[0], [0.0, RADIANCE_CAP, 0.0]);
+        assert_eq!(env.pixels()[1], [0.0, 2.0, 3.0]);
+    }
+
+    #[test]
+    fn sky_is_finite_bright_sun_dark_ground() {
+        let env = Environment::load(SKY_SPEC).unwrap();
+        assert_eq!((env.width(), env.height()), (SKY_WIDTH, SKY_HEIGHT));
+        let sun = sh::direction(
+            (90.0 - SUN_ELEVATION_DEG).to_radians(),
+            SUN_AZIMUTH_DEG.to_radians(),
+        );
+        let at_sun = env.lookup(sun);
+        let zenith = env.lookup([0.0, 1.0, 0.0]);
+        let ground = env.lookup([0.0, -1.0, 0.0]);
+        assert!(at_sun[0] > 500.0 * zenith[0]);
+        assert!(zenith[2] > zenith[0], "zenith is blue");
+        assert!(ground[2] < zenith[2]);
+        assert!(env
+            .pixels()
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0));
+    }
+
+    #[test]
+    fn fixture_reconstruction_error_falls_with_bands() {
+        let env = Environment::load(&fixture("sky_sun.exr")).unwrap();
+        let errors: Vec<f64> = [5, 10, 15]
+            .iter()
+            .map(|&b| {
+                let recon = env
+                    .project(b)
+                    .reconstruct_latlong(env.width(), env.height());
+                env.relative_l2_error(&recon)
+            })
+            .collect();
+        eprintln!("sky_sun relative L2 error at 5/10/15 bands: {errors:?}");
+        assert!(errors[0] > errors[1] && errors[1] > errors[2], "{errors:?}");
+    }
+
+    #[test]
+    fn every_fixture_loads() {
+        for name in [
+            "constant.exr",
+            "sky_sun.exr",
+            "split.exr",
+            "studio.exr",
+            "studio.hdr",
+        ] {
+            let env = Environment::load(&fixture(name)).unwrap();
+            assert!(env
+                .pixels()
+                .iter()
+                .flatten()
+                .all(|v| v.is_finite() && *v >= 0.0));
+        }
+    }
+
+    #[test]
+    fn exr_and_hdr_of_the_same_map_agree() {
+        let exr = Environment::load(&fixture("studio.exr")).unwrap();
+        let hdr = Environment::load(&fixture("studio.hdr")).unwrap();
+        assert_eq!((exr.width(), exr.height()), (hdr.width(), hdr.height()));
+        // RGBE keeps 8 bits of mantissa per pixel: ≈ 1 % relative error.
+        let (a, b) = (exr.project(4), hdr.project(4));
+        for (x, y) in a.coeffs.iter().zip(&b.coeffs) {
+            for k in 0..3 {
+                assert!((x[k] - y[k]).abs() < 0.02 * a.coeffs[0][k].abs() + 1e-4);
+            }
+        }
+    }
+
+    #[test]
+    fn constant_fixture_projects_to_band_zero() {
+        let env = Environment::load(&fixture("constant.exr")).unwrap();
+        let c = env.pixels()[0];
+        let sh = env.project(4);
+        for (got, value) in sh.coeffs[0].iter().zip(c) {
+            let e0 = value as f64 * (4.0 * PI).sqrt();
+            assert!((*got as f64 - e0).abs() < 1e-5 * e0);
+        }
+    }
+}
