@@ -37,6 +37,8 @@ pub enum Command {
     Info(InfoArgs),
     /// Project an environment map onto SH and write its reconstruction (thesis fig. 6.4).
     Env(EnvArgs),
+    /// Render a volume lit by an environment, with multiple scattering (.exr or .png).
+    Render(RenderArgs),
 }
 
 #[derive(Debug, Args)]
@@ -97,4 +99,178 @@ impl GlobalArgs {
         }
         Ok(std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
+}
+
+/// `vscatter render IN -o OUT.(exr|png)`.
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// The volume: a VDB (its transfer is baked first, with the bake options) or a .vtc cache.
+    #[arg(value_name = "IN")]
+    pub input: PathBuf,
+    /// The image to write: .exr (linear RGBA plus direct, indirect and depth layers) or .png.
+    #[arg(short, long, value_name = "OUT")]
+    pub output: PathBuf,
+    /// Latlong environment (.exr or .hdr), or `sky` for the built-in sky.
+    #[arg(long, value_name = "ENV", default_value = crate::env::SKY_SPEC)]
+    pub env: String,
+    /// Multiplies the environment's radiance.
+    #[arg(long, value_name = "F", default_value_t = 1.0)]
+    pub env_scale: f32,
+    /// Turns the environment about +Y, degrees.
+    #[arg(
+        long,
+        value_name = "DEG",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    pub env_rotate: f64,
+    /// Windowing of the environment's SH coefficients against ringing (thesis eq. 6.1).
+    #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
+    pub window: crate::sh::Window,
+    /// Image size.
+    #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_resolution)]
+    pub res: (u32, u32),
+    /// Camera position (default: framing the volume from +Z).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub camera_pos: Option<[f32; 3]>,
+    /// Point the camera looks at (default: the centre of the volume).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub lookat: Option<[f32; 3]>,
+    /// The camera's up direction.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true,
+          default_value = "0,1,0")]
+    pub up: [f32; 3],
+    /// Horizontal field of view, degrees.
+    #[arg(long, value_name = "DEG", default_value_t = 45.0)]
+    pub fov: f32,
+    /// Samples per pixel (box filter).
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub spp: u32,
+    /// Exposure in stops for PNG output.
+    #[arg(
+        long,
+        value_name = "EV",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    pub exposure: f32,
+    /// No environment behind the volume: transparent where it is thin (premultiplied alpha).
+    #[arg(long)]
+    pub no_background: bool,
+    /// Write EXR as half floats.
+    #[arg(long)]
+    pub exr_half: bool,
+    #[command(flatten)]
+    pub bake: BakeArgs,
+}
+
+/// The bake options (DESIGN.md defaults), shared by every command that bakes.
+#[derive(Debug, Args)]
+pub struct BakeArgs {
+    /// The density grid (default `density`, else the first scalar grid).
+    #[arg(long, value_name = "NAME")]
+    pub grid: Option<String>,
+    /// Extinction per world unit at density 1.
+    #[arg(long, value_name = "F", default_value_t = 1.0)]
+    pub sigma_t: f32,
+    /// Single-scattering albedo σs/σt.
+    #[arg(long, value_name = "F", default_value_t = 0.9)]
+    pub albedo: f32,
+    /// SH bands (bands² coefficients), 1 to 20.
+    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
+    pub bands: usize,
+    /// Density voxels per transfer voxel along each axis (K).
+    #[arg(long, value_name = "K", default_value_t = 6)]
+    pub scale: i32,
+    /// Directions per transfer voxel for the unscattered transfer.
+    #[arg(long, value_name = "N", default_value_t = 512)]
+    pub samples: usize,
+    /// Lattice directions for multiple scattering.
+    #[arg(long, value_enum, default_value_t = crate::transfer::lattice::LatticeKind::All)]
+    pub lattice: crate::transfer::lattice::LatticeKind,
+    /// Bake the unscattered transfer only (no lattice).
+    #[arg(long)]
+    pub single_scatter: bool,
+    /// Seed of the direction sets.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// Largest K accepted: a transfer voxel of 64³ density voxels is already coarser than any useful
+/// lighting detail.
+const MAX_SCALE: i32 = 64;
+/// Most single-scattering directions accepted: 16× the default, minutes per voxel set beyond.
+const MAX_SAMPLES: usize = 8192;
+
+impl BakeArgs {
+    /// The medium and bake settings, validated.
+    pub fn settings(&self) -> Result<(crate::transfer::Medium, crate::transfer::BakeSettings)> {
+        crate::sh::check_bands(self.bands)?;
+        if !(self.sigma_t.is_finite() && self.sigma_t >= 0.0) {
+            return Err(Error::usage(format!(
+                "--sigma-t {}: must be a finite number ≥ 0",
+                self.sigma_t
+            )));
+        }
+        if !(0.0..=1.0).contains(&self.albedo) {
+            return Err(Error::usage(format!(
+                "--albedo {}: must lie in [0, 1]",
+                self.albedo
+            )));
+        }
+        if !(1..=MAX_SCALE).contains(&self.scale) {
+            return Err(Error::usage(format!(
+                "--scale {}: must lie in 1..={MAX_SCALE}",
+                self.scale
+            )));
+        }
+        if !(1..=MAX_SAMPLES).contains(&self.samples) {
+            return Err(Error::usage(format!(
+                "--samples {}: must lie in 1..={MAX_SAMPLES}",
+                self.samples
+            )));
+        }
+        let medium = crate::transfer::Medium {
+            sigma_t: self.sigma_t,
+            albedo: self.albedo,
+        };
+        let settings = crate::transfer::BakeSettings {
+            bands: self.bands,
+            scale: self.scale,
+            samples: self.samples,
+            lattice: self.lattice,
+            single_scatter: self.single_scatter,
+            seed: self.seed,
+        };
+        Ok((medium, settings))
+    }
+}
+
+/// `WxH`, both at least 1 (the camera bounds the area).
+fn parse_resolution(s: &str) -> std::result::Result<(u32, u32), String> {
+    let bad = || format!("{s:?}: expected WIDTHxHEIGHT, e.g. 1280x720");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let w: u32 = w.trim().parse().map_err(|_| bad())?;
+    let h: u32 = h.trim().parse().map_err(|_| bad())?;
+    if w == 0 || h == 0 {
+        return Err(format!("{s:?}: both sides must be at least 1"));
+    }
+    Ok((w, h))
+}
+
+/// `X,Y,Z`, three finite numbers.
+fn parse_vec3(s: &str) -> std::result::Result<[f32; 3], String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    let bad = || format!("{s:?}: expected three numbers X,Y,Z");
+    if parts.len() != 3 {
+        return Err(bad());
+    }
+    let mut v = [0.0f32; 3];
+    for (o, p) in v.iter_mut().zip(&parts) {
+        *o = p.trim().parse().map_err(|_| bad())?;
+        if !o.is_finite() {
+            return Err(bad());
+        }
+    }
+    Ok(v)
 }

@@ -10,6 +10,7 @@ pub mod image;
 pub mod info;
 pub mod progress;
 pub mod render;
+pub mod render_cmd;
 pub mod sh;
 pub mod transfer;
 pub mod volume;
@@ -28,5 +29,6 @@ pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Info(args) => info::run(&args),
         Command::Env(args) => env_cmd::run(&args),
+        Command::Render(args) => render_cmd::run(&args, &cli.global),
     }
 }
