@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use crate::error::{Error, Result};
+use crate::transfer::{lattice::LatticeKind, BakeSettings, Medium};
 
 /// Multiple-scattering relighting of OpenVDB fog volumes.
 #[derive(Debug, Parser)]
@@ -37,8 +38,134 @@ pub enum Command {
     Info(InfoArgs),
     /// Project an environment map onto SH and write its reconstruction (thesis fig. 6.4).
     Env(EnvArgs),
+    /// Bake a VDB density into a transfer cache (.vtc): single and multiple scattering.
+    Bake(BakeCmd),
     /// Render a volume lit by an environment, with multiple scattering (.exr or .png).
     Render(RenderArgs),
+}
+
+/// Default extinction per world unit per unit density (DESIGN.md).
+pub const DEFAULT_SIGMA_T: f32 = 1.0;
+/// Default single-scattering albedo: clouds are near 1, 0.9 keeps bakes quick and the look soft.
+pub const DEFAULT_ALBEDO: f32 = 0.9;
+/// Default transfer resolution divisor: the thesis' 1/6 of the density resolution.
+pub const DEFAULT_SCALE: i32 = 6;
+/// Default T_ri directions per transfer voxel: the thesis found ≥ 500 needed (fig. 6.3).
+pub const DEFAULT_SAMPLES: usize = 512;
+/// Fewer directions than this cannot resolve even a few SH bands.
+const MIN_SAMPLES: usize = 16;
+/// More directions than this only cost time: the projection error is far below the SH truncation.
+const MAX_SAMPLES: usize = 65536;
+/// K beyond this leaves a handful of transfer voxels across any real volume.
+const MAX_SCALE: i32 = 64;
+
+/// `vscatter bake IN.vdb -o OUT.vtc`.
+#[derive(Debug, Args)]
+pub struct BakeCmd {
+    /// The VDB file to bake.
+    pub input: PathBuf,
+    /// The cache to write (.vtc).
+    #[arg(short, long, value_name = "OUT")]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub bake: BakeArgs,
+}
+
+/// The bake flags, shared by every command that bakes.
+#[derive(Debug, Clone, Args)]
+pub struct BakeArgs {
+    /// The grid to read (default: `density`, else the first scalar grid).
+    #[arg(long, value_name = "NAME")]
+    pub grid: Option<String>,
+    /// Extinction per world unit at density 1.
+    #[arg(long, value_name = "F", default_value_t = DEFAULT_SIGMA_T)]
+    pub sigma_t: f32,
+    /// Single-scattering albedo σs/σt, 0 to 1.
+    #[arg(long, value_name = "F", default_value_t = DEFAULT_ALBEDO)]
+    pub albedo: f32,
+    /// SH bands (bands² coefficients per transfer voxel), 1 to 20.
+    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
+    pub bands: usize,
+    /// Density voxels per transfer voxel along each axis (K).
+    #[arg(long, value_name = "K", default_value_t = DEFAULT_SCALE)]
+    pub scale: i32,
+    /// Directions marched per transfer voxel for single scattering.
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_SAMPLES)]
+    pub samples: usize,
+    /// Lattice directions for multiple scattering.
+    #[arg(long, value_enum, default_value_t = LatticeKind::All)]
+    pub lattice: LatticeKind,
+    /// Skip multiple scattering (T_ri only; thesis fig. 6.1).
+    #[arg(long)]
+    pub single_scatter: bool,
+    /// Seed of the direction-set rotations (and of path tracing).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub seed: u64,
+    /// Store coefficients as 16-bit floats (half the cache size).
+    #[arg(long)]
+    pub cache_half: bool,
+    /// Print the memory estimate and stop.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Refuse bakes estimated to need more (e.g. 8G; default 80 % of available memory).
+    #[arg(long, value_name = "SIZE")]
+    pub max_memory: Option<String>,
+}
+
+/// Bake flags after validation.
+#[derive(Debug, Clone)]
+pub struct BakeConfig {
+    pub grid: Option<String>,
+    pub medium: Medium,
+    pub settings: BakeSettings,
+    pub half: bool,
+    pub dry_run: bool,
+    pub max_memory: Option<u64>,
+}
+
+impl BakeArgs {
+    pub fn validate(&self) -> Result<BakeConfig> {
+        crate::sh::check_bands(self.bands)?;
+        if !(self.sigma_t.is_finite() && self.sigma_t > 0.0) {
+            return Err(Error::usage("--sigma-t must be a positive number"));
+        }
+        if !(0.0..=1.0).contains(&self.albedo) {
+            return Err(Error::usage("--albedo must be between 0 and 1"));
+        }
+        if !(1..=MAX_SCALE).contains(&self.scale) {
+            return Err(Error::usage(format!("--scale must be 1 to {MAX_SCALE}")));
+        }
+        if !(MIN_SAMPLES..=MAX_SAMPLES).contains(&self.samples) {
+            return Err(Error::usage(format!(
+                "--samples must be {MIN_SAMPLES} to {MAX_SAMPLES}"
+            )));
+        }
+        let max_memory = match &self.max_memory {
+            Some(s) => Some(
+                parse_size::parse_size(s)
+                    .map_err(|e| Error::usage(format!("--max-memory {s:?}: {e}")))?,
+            ),
+            None => None,
+        };
+        Ok(BakeConfig {
+            grid: self.grid.clone(),
+            medium: Medium {
+                sigma_t: self.sigma_t,
+                albedo: self.albedo,
+            },
+            settings: BakeSettings {
+                bands: self.bands,
+                scale: self.scale,
+                samples: self.samples,
+                lattice: self.lattice,
+                single_scatter: self.single_scatter,
+                seed: self.seed,
+            },
+            half: self.cache_half,
+            dry_run: self.dry_run,
+            max_memory,
+        })
+    }
 }
 
 #[derive(Debug, Args)]
@@ -162,88 +289,6 @@ pub struct RenderArgs {
     pub exr_half: bool,
     #[command(flatten)]
     pub bake: BakeArgs,
-}
-
-/// The bake options (DESIGN.md defaults), shared by every command that bakes.
-#[derive(Debug, Args)]
-pub struct BakeArgs {
-    /// The density grid (default `density`, else the first scalar grid).
-    #[arg(long, value_name = "NAME")]
-    pub grid: Option<String>,
-    /// Extinction per world unit at density 1.
-    #[arg(long, value_name = "F", default_value_t = 1.0)]
-    pub sigma_t: f32,
-    /// Single-scattering albedo σs/σt.
-    #[arg(long, value_name = "F", default_value_t = 0.9)]
-    pub albedo: f32,
-    /// SH bands (bands² coefficients), 1 to 20.
-    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
-    pub bands: usize,
-    /// Density voxels per transfer voxel along each axis (K).
-    #[arg(long, value_name = "K", default_value_t = 6)]
-    pub scale: i32,
-    /// Directions per transfer voxel for the unscattered transfer.
-    #[arg(long, value_name = "N", default_value_t = 512)]
-    pub samples: usize,
-    /// Lattice directions for multiple scattering.
-    #[arg(long, value_enum, default_value_t = crate::transfer::lattice::LatticeKind::All)]
-    pub lattice: crate::transfer::lattice::LatticeKind,
-    /// Bake the unscattered transfer only (no lattice).
-    #[arg(long)]
-    pub single_scatter: bool,
-    /// Seed of the direction sets.
-    #[arg(long, value_name = "N", default_value_t = 0)]
-    pub seed: u64,
-}
-
-/// Largest K accepted: a transfer voxel of 64³ density voxels is already coarser than any useful
-/// lighting detail.
-const MAX_SCALE: i32 = 64;
-/// Most single-scattering directions accepted: 16× the default, minutes per voxel set beyond.
-const MAX_SAMPLES: usize = 8192;
-
-impl BakeArgs {
-    /// The medium and bake settings, validated.
-    pub fn settings(&self) -> Result<(crate::transfer::Medium, crate::transfer::BakeSettings)> {
-        crate::sh::check_bands(self.bands)?;
-        if !(self.sigma_t.is_finite() && self.sigma_t >= 0.0) {
-            return Err(Error::usage(format!(
-                "--sigma-t {}: must be a finite number ≥ 0",
-                self.sigma_t
-            )));
-        }
-        if !(0.0..=1.0).contains(&self.albedo) {
-            return Err(Error::usage(format!(
-                "--albedo {}: must lie in [0, 1]",
-                self.albedo
-            )));
-        }
-        if !(1..=MAX_SCALE).contains(&self.scale) {
-            return Err(Error::usage(format!(
-                "--scale {}: must lie in 1..={MAX_SCALE}",
-                self.scale
-            )));
-        }
-        if !(1..=MAX_SAMPLES).contains(&self.samples) {
-            return Err(Error::usage(format!(
-                "--samples {}: must lie in 1..={MAX_SAMPLES}",
-                self.samples
-            )));
-        }
-        let medium = crate::transfer::Medium {
-            sigma_t: self.sigma_t,
-            albedo: self.albedo,
-        };
-        let settings = crate::transfer::BakeSettings {
-            bands: self.bands,
-            scale: self.scale,
-            samples: self.samples,
-            lattice: self.lattice,
-            single_scatter: self.single_scatter,
-            seed: self.seed,
-        };
-        Ok((medium, settings))
-    }
 }
 
 /// `WxH`, both at least 1 (the camera bounds the area).

@@ -10,8 +10,11 @@ use crate::error::{Error, Result};
 use crate::volume::vdb::{GridInfo, ValueKind, VdbFile};
 use crate::volume::SparseGrid;
 
-/// Runs `vscatter info`.
+/// Runs `vscatter info`: a `.vtc` cache (recognised by its magic) or a VDB file.
 pub fn run(args: &InfoArgs) -> Result<()> {
+    if crate::transfer::cache::is_cache(&args.file)? {
+        return cache_info(args);
+    }
     let vdb = VdbFile::open(&args.file)?;
     let chosen = match &args.grid {
         Some(name) => vec![vdb.choose_grid(Some(name))?],
@@ -36,6 +39,50 @@ pub fn run(args: &InfoArgs) -> Result<()> {
         format!("{report:#}\n")
     } else {
         render_text(&report)
+    };
+    std::io::stdout()
+        .lock()
+        .write_all(text.as_bytes())
+        .map_err(|e| Error::io("<stdout>", e))
+}
+
+/// Describes a transfer cache: its header, checked against the file's size (not its checksum,
+/// so `info` stays instant on big caches).
+fn cache_info(args: &InfoArgs) -> Result<()> {
+    let h = crate::transfer::cache::read_header(&args.file)?;
+    let size = std::fs::metadata(&args.file)
+        .map_err(|e| Error::io(&args.file, e))?
+        .len();
+    let text = if args.json {
+        let mut v = serde_json::to_value(&h).map_err(|e| Error::Runtime(e.to_string()))?;
+        v["file"] = json!(args.file.display().to_string());
+        v["file_bytes"] = json!(size);
+        v["format_version"] = json!(crate::transfer::cache::VERSION);
+        format!("{v:#}\n")
+    } else {
+        format!(
+            "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients\n",
+            args.file.display(),
+            crate::transfer::cache::VERSION,
+            indicatif::HumanBytes(size),
+            h.source.name,
+            h.source.grid,
+            h.source.size,
+            h.sigma_t,
+            h.albedo,
+            h.bands,
+            h.scale,
+            h.samples,
+            h.lattice,
+            if h.single_scatter { " (single scattering only)" } else { "" },
+            h.seed,
+            h.voxel_scale,
+            h.translation,
+            h.leaves,
+            h.tiles,
+            h.transfer_voxels,
+            h.coefficients,
+        )
     };
     std::io::stdout()
         .lock()
@@ -84,21 +131,6 @@ fn grid_json(g: &GridInfo, tree: Option<&SparseGrid>) -> Value {
         a.extend(b);
     }
     v
-}
-
-fn human_bytes(n: u64) -> String {
-    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
-    let mut x = n as f64;
-    let mut u = 0;
-    while x >= 1024.0 && u + 1 < UNITS.len() {
-        x /= 1024.0;
-        u += 1;
-    }
-    if u == 0 {
-        format!("{n} B")
-    } else {
-        format!("{x:.1} {}", UNITS[u])
-    }
 }
 
 fn vec3(v: &Value) -> String {
@@ -189,7 +221,7 @@ fn render_text(r: &Value) -> String {
         }
         out += &format!(
             "  memory      {}\n",
-            human_bytes(g["memory_bytes"].as_u64().unwrap_or(0))
+            indicatif::HumanBytes(g["memory_bytes"].as_u64().unwrap_or(0))
         );
     }
     out

@@ -2,6 +2,7 @@
 //! with multiple scattering, and relight it with any HDR environment.
 
 pub mod atomic;
+pub mod bake;
 pub mod cli;
 pub mod env;
 pub mod env_cmd;
@@ -29,6 +30,7 @@ pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Info(args) => info::run(&args),
         Command::Env(args) => env_cmd::run(&args),
+        Command::Bake(args) => bake::run(&args, &cli.global),
         Command::Render(args) => render_cmd::run(&args, &cli.global),
     }
 }

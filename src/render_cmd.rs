@@ -1,6 +1,6 @@
-//! `vscatter render`: volume in, image out. Reads the density, bakes its transfer (a `.vtc` cache
-//! will skip that step), projects the environment onto SH, relights, marches, and writes the EXR
-//! (RGBA plus direct, indirect and depth layers) or PNG atomically.
+//! `vscatter render`: volume in, image out. Reads a `.vtc` cache (density and transfer) or a VDB
+//! whose transfer it bakes first, projects the environment onto SH, relights, marches, and writes
+//! the EXR (RGBA plus direct, indirect and depth layers) or PNG atomically.
 
 use std::path::Path;
 use std::time::Instant;
@@ -12,7 +12,7 @@ use crate::env::Environment;
 use crate::error::{Error, Result};
 use crate::image::{ExrPrecision, WriteOptions};
 use crate::render::{render_volume, world_bounds, CameraSpec, MarchSettings};
-use crate::volume::vdb::VdbFile;
+use crate::volume::load_density;
 
 /// Most samples per pixel accepted: beyond this a box filter has long converged.
 const MAX_SPP: u32 = 65536;
@@ -29,7 +29,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             args.output.display()
         )));
     }
-    let (medium, bake_settings) = args.bake.settings()?;
+    let bake_config = args.bake.validate()?;
     if !(1..=MAX_SPP).contains(&args.spp) {
         return Err(Error::usage(format!(
             "--spp {}: must lie in 1..={MAX_SPP}",
@@ -57,22 +57,26 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     };
     // Validates resolution, fov and pose before the bake (a framing camera of a unit box).
     spec.camera(None)?;
-    if ext(&args.input).as_deref() == Some("vtc") {
-        // Integration point: the cache reader (transfer/cache.rs) provides density + transfer.
-        return Err(Error::usage(format!(
-            "{}: rendering from a .vtc cache is not available in this build; render the .vdb",
-            args.input.display()
-        )));
-    }
-
     let clock = Instant::now();
-    let vdb = VdbFile::open(&args.input)?;
-    let density = vdb.read_grid(vdb.choose_grid(args.bake.grid.as_deref())?)?;
+    // A cache is recognised by its content, so a renamed file still works.
+    let cached = crate::transfer::cache::is_cache(&args.input)?;
+    let (density, baked) = if cached {
+        let cache = crate::transfer::cache::read(&args.input)?;
+        (cache.density, Some(cache.transfer))
+    } else {
+        (
+            load_density(&args.input, bake_config.grid.as_deref())?.grid,
+            None,
+        )
+    };
     let read_seconds = clock.elapsed().as_secs_f64();
+    let bands = baked
+        .as_ref()
+        .map_or(bake_config.settings.bands, |t| t.bands);
 
     let clock = Instant::now();
     let env = Environment::load(&args.env)?;
-    let mut sh = env.project(args.bake.bands);
+    let mut sh = env.project(bands);
     sh.apply_window(args.window);
     let angle = args.env_rotate.to_radians();
     sh.rotate_y(angle);
@@ -81,8 +85,14 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     let env_seconds = clock.elapsed().as_secs_f64();
 
     let clock = Instant::now();
-    let (transfer, bake_stats) =
-        crate::transfer::bake(&density, medium, &bake_settings, global.quiet);
+    let transfer = match baked {
+        Some(t) => t,
+        None => match crate::bake::bake_checked(&density, &bake_config, global)? {
+            Some((t, _)) => t,
+            // --dry-run: the estimate is printed, nothing is rendered.
+            None => return Ok(()),
+        },
+    };
     let bake_seconds = clock.elapsed().as_secs_f64();
 
     let camera = spec.camera(world_bounds(&density))?;
@@ -123,7 +133,8 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             "read_seconds": read_seconds,
             "env_seconds": env_seconds,
             "bake_seconds": bake_seconds,
-            "transfer_voxels": bake_stats.transfer_voxels,
+            "from_cache": cached,
+            "transfer_voxels": transfer.layout.len(),
             "occupancy_seconds": timings.occupancy.as_secs_f64(),
             "relight_seconds": timings.relight.as_secs_f64(),
             "march_seconds": timings.march.as_secs_f64(),
@@ -132,6 +143,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             "samples_taken": march_stats.samples_taken,
             "samples_skipped": march_stats.samples_skipped,
             "active_voxels": density.active_voxels(),
+            "peak_memory_bytes": crate::bake::peak_memory(),
         });
         println!("{line}");
     }

@@ -35,6 +35,11 @@ fn tile_local(v: IVec3) -> usize {
     ((l.x << (2 * TILE_LOG2)) | (l.y << TILE_LOG2) | l.z) as usize
 }
 
+/// The sort key of slots: tile first, then position within the tile.
+fn slot_order(v: IVec3) -> ([i32; 3], usize) {
+    ((v >> TILE_LOG2).to_array(), tile_local(v))
+}
+
 impl TransferLayout {
     /// The transfer voxels for `density` at 1/`k` resolution: every footprint holding an active
     /// density voxel or tile, dilated by one voxel in all 26 directions.
@@ -81,7 +86,20 @@ impl TransferLayout {
         }
         // Slots tile by tile, in a fixed order, so a bake is deterministic and tiles contiguous.
         let mut voxels: Vec<IVec3> = all.into_iter().collect();
-        voxels.sort_unstable_by_key(|v| ((*v >> TILE_LOG2).to_array(), tile_local(*v)));
+        voxels.sort_unstable_by_key(|v| slot_order(*v));
+        Self::index(k, voxels)
+    }
+
+    /// A layout from voxels already in slot order (as a cache stores them); `None` when they are
+    /// not strictly in that order, which also rules out repeats.
+    pub fn from_voxels(k: i32, voxels: Vec<IVec3>) -> Option<TransferLayout> {
+        let ordered = voxels
+            .windows(2)
+            .all(|w| slot_order(w[0]) < slot_order(w[1]));
+        ordered.then(|| Self::index(k, voxels))
+    }
+
+    fn index(k: i32, voxels: Vec<IVec3>) -> TransferLayout {
         let mut tiles: HashMap<IVec3, Box<[u32; TILE_VOXELS]>> = HashMap::new();
         for (slot, v) in voxels.iter().enumerate() {
             let tile = tiles

@@ -179,14 +179,24 @@ fn build_links(
         .voxels()
         .iter()
         .fold((IVec3::MAX, IVec3::MIN), |(a, b), v| (a.min(*v), b.max(*v)));
-    let per_node: Vec<(Vec<u32>, Vec<f32>, Vec<f32>, f32)> = layout
-        .voxels()
-        .par_iter()
-        .map(|&v| {
+    let mut links = Links {
+        target: vec![NO_LINK; n * d],
+        trans: vec![1.0; n * d],
+        track: vec![0.0; n * d],
+        source: vec![0.0; n],
+        order: Vec::with_capacity(d),
+        dirs,
+    };
+    let dirs = &links.dirs;
+    links
+        .target
+        .par_chunks_mut(d)
+        .zip(links.trans.par_chunks_mut(d))
+        .zip(links.track.par_chunks_mut(d))
+        .zip(links.source.par_iter_mut())
+        .zip(layout.voxels().par_iter())
+        .for_each(|((((target, trans), track), source), &v)| {
             let x = layout.position(v);
-            let mut target = vec![NO_LINK; d];
-            let mut trans = vec![1.0; d];
-            let mut track = vec![0.0; d];
             for (j, off) in dirs.offsets.iter().enumerate() {
                 let mut step = v + *off;
                 while step.cmpge(lo).all() && step.cmple(hi).all() {
@@ -207,23 +217,8 @@ fn build_links(
                     half * (1.0 - 0.5 * tau)
                 };
             }
-            (target, trans, track, cell_mean(density, v, k))
-        })
-        .collect();
-    let mut links = Links {
-        target: Vec::with_capacity(n * d),
-        trans: Vec::with_capacity(n * d),
-        track: Vec::with_capacity(n * d),
-        source: Vec::with_capacity(n),
-        order: Vec::with_capacity(d),
-        dirs,
-    };
-    for (t, e, g, rho) in per_node {
-        links.target.extend(t);
-        links.trans.extend(e);
-        links.track.extend(g);
-        links.source.push(medium.albedo * medium.sigma_t * rho);
-    }
+            *source = medium.albedo * medium.sigma_t * cell_mean(density, v, k);
+        });
     for off in &links.dirs.offsets {
         let mut order: Vec<u32> = (0..n as u32).collect();
         // Links always increase x·d_j, so ascending order sees every arrival before it leaves.

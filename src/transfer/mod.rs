@@ -2,6 +2,7 @@
 //! direction that reaches it — unscattered (`t_ri`, thesis eq. 4.1) and after one or more
 //! scattering events (`f_ms`, thesis 4.2) — independent of any environment.
 
+pub mod cache;
 pub mod grid;
 pub mod lattice;
 pub mod single;
@@ -115,4 +116,48 @@ pub fn bake(
         f_ms,
     };
     (transfer, stats)
+}
+
+/// Peak memory of a bake, estimated before anything big is allocated.
+#[derive(Debug, Clone, Copy)]
+pub struct MemoryEstimate {
+    pub density: u64,
+    pub layout: u64,
+    /// T_ri and F_ms as kept in memory (f32).
+    pub transfer: u64,
+    /// The larger of the single-scattering and lattice phases' working memory.
+    pub working: u64,
+}
+
+impl MemoryEstimate {
+    pub fn new(
+        density_bytes: usize,
+        layout_bytes: usize,
+        voxels: usize,
+        settings: &BakeSettings,
+        threads: usize,
+    ) -> MemoryEstimate {
+        let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
+        let one = n * c * 4;
+        let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
+        // Single: batch results before they are scattered into T_ri (one more copy of T_ri).
+        let single = one + sets;
+        // Lattice: per-chunk results (one more copy), link tables, sweep orders, chunk buffers.
+        let d = settings.lattice.directions() as u64;
+        let lattice = if settings.single_scatter {
+            0
+        } else {
+            one + n * d * 12 + n * d * 4 + threads as u64 * 4 * n * 8 * 4
+        };
+        MemoryEstimate {
+            density: density_bytes as u64,
+            layout: layout_bytes as u64,
+            transfer: 2 * one,
+            working: single.max(lattice),
+        }
+    }
+
+    pub fn total(&self) -> u64 {
+        self.density + self.layout + self.transfer + self.working
+    }
 }

@@ -197,6 +197,14 @@ impl SparseGrid {
         &self.leaves
     }
 
+    /// Clamps negative tile values to zero (a density cannot be negative).
+    pub fn clamp_negative_tiles(&mut self) {
+        for map in self.tiles.iter_mut() {
+            map.values_mut().for_each(|v| *v = v.max(0.0));
+        }
+        self.node_max.values_mut().for_each(|v| *v = v.max(0.0));
+    }
+
     pub fn leaves_mut(&mut self) -> &mut [Leaf] {
         &mut self.leaves
     }

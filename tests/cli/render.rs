@@ -67,6 +67,38 @@ fn render_writes_an_exr_with_layers_and_a_png() {
     args.extend(QUICK_BAKE);
     let out = vscatter_in(dir.path(), &args);
     assert!(out.status.success(), "{}", stderr(&out));
+    // A cache renders the same as the VDB it was baked from, with the same bake flags.
+    let mut args = vec![
+        "bake",
+        input.to_str().unwrap(),
+        "-o",
+        "c.vtc",
+        "--sigma-t",
+        "20",
+    ];
+    args.extend(QUICK_BAKE);
+    let out = vscatter_in(dir.path(), &args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let from_cache = [
+        "render",
+        "c.vtc",
+        "-o",
+        "cache.exr",
+        "--res",
+        "24x16",
+        "--stats",
+    ];
+    let out = vscatter_in(dir.path(), &from_cache);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stats: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&out.stdout).trim()).unwrap();
+    assert_eq!(stats["from_cache"], true);
+    let read = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
+    assert_eq!(read("cache.exr"), read("out.exr"));
+    for f in ["c.vtc", "cache.exr"] {
+        std::fs::remove_file(dir.path().join(f)).unwrap();
+    }
+
     let mut files: Vec<String> = std::fs::read_dir(dir.path())
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())

@@ -1,0 +1,470 @@
+//! The `.vtc` transfer cache: self-contained (medium, bake settings, source, transform, the sparse
+//! density, and the transfer as T_ri and F_ms), checksummed, written atomically.
+//!
+//! Layout, little-endian:
+//! ```text
+//! magic "VSCTRCACHE\0\0"  12 bytes
+//! u32   format version
+//! u64   header length H;  H bytes of JSON: everything descriptive, and the section counts
+//! density: background f32; per leaf: origin 3×i32, mask 8×u64, 512×f32;
+//!          per tile level (8³, 128³, 4096³): per tile origin 3×i32, value f32
+//! layout:  per transfer voxel 3×i32, in slot order
+//! t_ri, f_ms: voxels × bands² coefficients, f32 or f16 (`coefficients` in the header)
+//! u64   xxh3-64 of every byte before it
+//! ```
+//! The reader derives every section's size from the header's counts with checked arithmetic and
+//! requires the total to equal the file's length before it allocates anything, then verifies the
+//! checksum, so a truncated or corrupted cache is a clear error.
+
+use std::io::Write;
+use std::path::Path;
+
+use glam::{DVec3, IVec3};
+use serde::{Deserialize, Serialize};
+use xxhash_rust::xxh3::Xxh3;
+
+use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout};
+use crate::error::{Error, Result};
+use crate::volume::sparse::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+
+const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
+/// Bumped whenever the layout changes; older caches are refused with a message to re-bake.
+pub const VERSION: u32 = 1;
+/// Longest JSON header accepted: far above any real one, small enough to allocate safely.
+const MAX_HEADER: u64 = 1 << 20;
+const LEAF_BYTES: u64 = 12 + 64 + 4 * LEAF_VOXELS as u64;
+const TILE_BYTES: u64 = 16;
+
+/// Where the baked volume came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Source {
+    pub name: String,
+    pub grid: String,
+    pub size: u64,
+    /// Seconds since the Unix epoch, 0 when unknown.
+    pub mtime: u64,
+}
+
+/// The JSON header: what `info` shows, and the counts the reader checks sizes against.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Header {
+    pub sigma_t: f32,
+    pub albedo: f32,
+    pub bands: usize,
+    pub scale: i32,
+    pub samples: usize,
+    pub lattice: usize,
+    pub single_scatter: bool,
+    pub seed: u64,
+    pub source: Source,
+    pub voxel_scale: [f64; 3],
+    pub translation: [f64; 3],
+    pub leaves: u64,
+    /// Active tiles at the 8³, 128³ and 4096³ levels.
+    pub tiles: [u64; 3],
+    pub transfer_voxels: u64,
+    /// `f32` or `f16`.
+    pub coefficients: String,
+}
+
+/// A cache's contents.
+pub struct Cache {
+    pub header: Header,
+    pub density: SparseGrid,
+    pub transfer: Transfer,
+}
+
+impl Header {
+    fn coefficient_bytes(&self) -> Option<u64> {
+        match self.coefficients.as_str() {
+            "f32" => Some(4),
+            "f16" => Some(2),
+            _ => None,
+        }
+    }
+
+    /// Bytes of everything after the header and before the checksum.
+    fn body_len(&self) -> Option<u64> {
+        let coeffs = (self.bands as u64).checked_mul(self.bands as u64)?;
+        let tiles: u64 = self.tiles.iter().try_fold(0u64, |a, t| a.checked_add(*t))?;
+        let transfer = self
+            .transfer_voxels
+            .checked_mul(coeffs)?
+            .checked_mul(self.coefficient_bytes()?)?
+            .checked_mul(2)?;
+        4u64.checked_add(self.leaves.checked_mul(LEAF_BYTES)?)?
+            .checked_add(tiles.checked_mul(TILE_BYTES)?)?
+            .checked_add(self.transfer_voxels.checked_mul(12)?)?
+            .checked_add(transfer)
+    }
+
+    pub fn settings(&self) -> Option<BakeSettings> {
+        let lattice = match self.lattice {
+            6 => LatticeKind::Faces,
+            18 => LatticeKind::FacesEdges,
+            26 => LatticeKind::All,
+            _ => return None,
+        };
+        Some(BakeSettings {
+            bands: self.bands,
+            scale: self.scale,
+            samples: self.samples,
+            lattice,
+            single_scatter: self.single_scatter,
+            seed: self.seed,
+        })
+    }
+}
+
+/// A writer that hashes everything passing through it.
+struct Hashing<W: Write> {
+    inner: W,
+    hash: Xxh3,
+}
+
+impl<W: Write> Write for Hashing<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hash.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+fn put_ivec(w: &mut impl Write, v: IVec3) -> std::io::Result<()> {
+    v.to_array()
+        .iter()
+        .try_for_each(|c| w.write_all(&c.to_le_bytes()))
+}
+
+fn put_coefficients(w: &mut impl Write, values: &[f32], half: bool) -> std::io::Result<()> {
+    for chunk in values.chunks(4096) {
+        let bytes: Vec<u8> = if half {
+            chunk
+                .iter()
+                .flat_map(|v| half::f16::from_f32(*v).to_le_bytes())
+                .collect()
+        } else {
+            chunk.iter().flat_map(|v| v.to_le_bytes()).collect()
+        };
+        w.write_all(&bytes)?;
+    }
+    Ok(())
+}
+
+/// Builds the header for a bake of `density` into `transfer`.
+pub fn header(
+    density: &SparseGrid,
+    transfer: &Transfer,
+    settings: &BakeSettings,
+    source: Source,
+    half: bool,
+) -> Header {
+    let t = density.transform;
+    Header {
+        sigma_t: transfer.medium.sigma_t,
+        albedo: transfer.medium.albedo,
+        bands: settings.bands,
+        scale: settings.scale,
+        samples: settings.samples,
+        lattice: settings.lattice.directions(),
+        single_scatter: settings.single_scatter,
+        seed: settings.seed,
+        source,
+        voxel_scale: t.scale.to_array(),
+        translation: t.translation.to_array(),
+        leaves: density.leaf_count() as u64,
+        tiles: TileLevel::ALL.map(|l| density.tiles(l).count() as u64),
+        transfer_voxels: transfer.layout.len() as u64,
+        coefficients: if half { "f16" } else { "f32" }.into(),
+    }
+}
+
+/// Writes a cache atomically (temporary file, then rename).
+pub fn write(
+    path: &Path,
+    header: &Header,
+    density: &SparseGrid,
+    transfer: &Transfer,
+) -> Result<()> {
+    let json = serde_json::to_vec(header).map_err(|e| Error::Runtime(e.to_string()))?;
+    let half = header.coefficients == "f16";
+    crate::atomic::write_atomic(path, |file| {
+        let mut w = Hashing {
+            inner: file,
+            hash: Xxh3::new(),
+        };
+        w.write_all(MAGIC)?;
+        w.write_all(&VERSION.to_le_bytes())?;
+        w.write_all(&(json.len() as u64).to_le_bytes())?;
+        w.write_all(&json)?;
+        w.write_all(&density.background.to_le_bytes())?;
+        for leaf in density.leaves() {
+            put_ivec(&mut w, leaf.origin)?;
+            leaf.mask
+                .iter()
+                .try_for_each(|m| w.write_all(&m.to_le_bytes()))?;
+            let bytes: Vec<u8> = leaf.values.iter().flat_map(|v| v.to_le_bytes()).collect();
+            w.write_all(&bytes)?;
+        }
+        for level in TileLevel::ALL {
+            // Sorted so that two bakes of one input give identical files whatever the map order.
+            let mut tiles: Vec<(IVec3, f32)> = density.tiles(level).collect();
+            tiles.sort_by_key(|(o, _)| o.to_array());
+            for (origin, value) in tiles {
+                put_ivec(&mut w, origin)?;
+                w.write_all(&value.to_le_bytes())?;
+            }
+        }
+        for v in transfer.layout.voxels() {
+            put_ivec(&mut w, *v)?;
+        }
+        put_coefficients(&mut w, &transfer.t_ri, half)?;
+        put_coefficients(&mut w, &transfer.f_ms, half)?;
+        let sum = w.hash.digest();
+        w.inner.write_all(&sum.to_le_bytes())
+    })
+}
+
+/// A bounds-checked reader over the cache body (sizes were validated up front, so a short read
+/// here means the header lied about a count — still an error, never a panic).
+struct Body<'a> {
+    bytes: &'a [u8],
+}
+
+impl<'a> Body<'a> {
+    fn take(&mut self, n: usize) -> std::result::Result<&'a [u8], String> {
+        if n > self.bytes.len() {
+            return Err("cache sections are shorter than the header says".into());
+        }
+        let (a, b) = self.bytes.split_at(n);
+        self.bytes = b;
+        Ok(a)
+    }
+
+    fn u32s<const N: usize>(&mut self) -> std::result::Result<[u32; N], String> {
+        let b = self.take(4 * N)?;
+        Ok(std::array::from_fn(|i| {
+            u32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+        }))
+    }
+
+    fn ivec(&mut self) -> std::result::Result<IVec3, String> {
+        let [x, y, z] = self.u32s::<3>()?;
+        Ok(IVec3::new(x as i32, y as i32, z as i32))
+    }
+
+    fn f32(&mut self) -> std::result::Result<f32, String> {
+        Ok(f32::from_bits(self.u32s::<1>()?[0]))
+    }
+
+    fn coefficients(&mut self, n: usize, half: bool) -> std::result::Result<Vec<f32>, String> {
+        if half {
+            let b = self.take(2 * n)?;
+            Ok(b.chunks_exact(2)
+                .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
+                .collect())
+        } else {
+            let b = self.take(4 * n)?;
+            Ok(b.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect())
+        }
+    }
+}
+
+/// Whether `path` starts with the cache magic (a short or unreadable file is not a cache here; the
+/// VDB reader then reports what is wrong with it).
+pub fn is_cache(path: &Path) -> Result<bool> {
+    use std::io::Read;
+    let mut magic = [0u8; MAGIC.len()];
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    Ok(file.read_exact(&mut magic).is_ok() && &magic == MAGIC)
+}
+
+/// Reads only a cache's header, checked against the file's size (for `info`).
+pub fn read_header(path: &Path) -> Result<Header> {
+    use std::io::Read;
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    let mut prefix = Vec::new();
+    file.take(FIXED as u64 + MAX_HEADER)
+        .read_to_end(&mut prefix)
+        .map_err(|e| Error::io(path, e))?;
+    parse_header(&prefix, len)
+        .map(|(h, _)| h)
+        .map_err(|m| Error::format(path, m))
+}
+
+/// Bytes before the JSON header: magic, version, header length.
+const FIXED: usize = 12 + 4 + 8;
+
+/// Parses the header from the file's first bytes `data` and checks it against the file's length.
+fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usize), String> {
+    let fixed = FIXED;
+    if data.len() < fixed || &data[..MAGIC.len()] != MAGIC {
+        return Err("not a vscatter transfer cache (wrong magic)".into());
+    }
+    let version = u32::from_le_bytes([data[12], data[13], data[14], data[15]]);
+    if version != VERSION {
+        return Err(format!(
+            "cache format version {version}, this vscatter reads version {VERSION}: bake it again"
+        ));
+    }
+    let mut len = [0u8; 8];
+    len.copy_from_slice(&data[16..24]);
+    let hlen = u64::from_le_bytes(len);
+    if hlen > MAX_HEADER || hlen > (data.len() - fixed) as u64 || file_len < data.len() as u64 {
+        return Err(format!("header length {hlen} is impossible for this file"));
+    }
+    let end = fixed + hlen as usize;
+    let header: Header =
+        serde_json::from_slice(&data[fixed..end]).map_err(|e| format!("damaged header: {e}"))?;
+    let body = header
+        .body_len()
+        .ok_or("the header's counts or coefficient type are invalid")?;
+    let want = (end as u64)
+        .checked_add(body)
+        .and_then(|n| n.checked_add(8));
+    if want != Some(file_len) {
+        return Err(format!(
+            "truncated or padded: the header describes {} bytes, the file has {file_len}",
+            want.map_or("too many".into(), |n| n.to_string()),
+        ));
+    }
+    if !(1..=crate::sh::MAX_BANDS).contains(&header.bands) || header.scale < 1 {
+        return Err("the header's bake settings are invalid".into());
+    }
+    Ok((header, end))
+}
+
+/// Reads and verifies a whole cache.
+pub fn read(path: &Path) -> Result<Cache> {
+    let data = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    read_bytes(&data).map_err(|m| Error::format(path, m))
+}
+
+fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
+    let (header, start) = parse_header(data, data.len() as u64)?;
+    let split = data.len() - 8;
+    let mut sum = [0u8; 8];
+    sum.copy_from_slice(&data[split..]);
+    if xxhash_rust::xxh3::xxh3_64(&data[..split]) != u64::from_le_bytes(sum) {
+        return Err("checksum mismatch: the cache is corrupted".into());
+    }
+    let settings = header
+        .settings()
+        .ok_or("the header names an unknown lattice")?;
+    let transform = Transform {
+        scale: DVec3::from_array(header.voxel_scale),
+        translation: DVec3::from_array(header.translation),
+    };
+    let mut body = Body {
+        bytes: &data[start..split],
+    };
+    let mut density = SparseGrid::new(transform, body.f32()?);
+    for _ in 0..header.leaves {
+        let origin = body.ivec()?;
+        let words = body.u32s::<16>()?;
+        let mask = std::array::from_fn(|i| words[2 * i] as u64 | (words[2 * i + 1] as u64) << 32);
+        let values = body.coefficients(LEAF_VOXELS, false)?;
+        let mut array = [0f32; LEAF_VOXELS];
+        array.copy_from_slice(&values);
+        density.insert_leaf(origin, mask, array);
+    }
+    for (level, &count) in TileLevel::ALL.iter().zip(&header.tiles) {
+        for _ in 0..count {
+            let origin = body.ivec()?;
+            density.insert_tile(*level, origin, body.f32()?);
+        }
+    }
+    let mut voxels = Vec::new();
+    for _ in 0..header.transfer_voxels {
+        voxels.push(body.ivec()?);
+    }
+    let layout = TransferLayout::from_voxels(settings.scale, voxels)
+        .ok_or("transfer voxels are repeated or out of order")?;
+    let half = header.coefficients == "f16";
+    let n = layout.len() * settings.bands * settings.bands;
+    let t_ri = body.coefficients(n, half)?;
+    let f_ms = body.coefficients(n, half)?;
+    let transfer = Transfer {
+        layout,
+        bands: settings.bands,
+        medium: Medium {
+            sigma_t: header.sigma_t,
+            albedo: header.albedo,
+        },
+        t_ri,
+        f_ms,
+    };
+    Ok(Cache {
+        header,
+        density,
+        transfer,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny() -> (SparseGrid, Transfer, Header) {
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        g.insert_tile(TileLevel::Block, IVec3::new(8, 0, 0), 0.75);
+        let layout = TransferLayout::build(&g, 6);
+        let n = layout.len() * 4;
+        let transfer = Transfer {
+            layout,
+            bands: 2,
+            medium: Medium {
+                sigma_t: 2.0,
+                albedo: 0.5,
+            },
+            t_ri: (0..n).map(|i| i as f32 * 0.25).collect(),
+            f_ms: (0..n).map(|i| -(i as f32)).collect(),
+        };
+        let settings = BakeSettings {
+            bands: 2,
+            scale: 6,
+            samples: 64,
+            lattice: LatticeKind::All,
+            single_scatter: false,
+            seed: 7,
+        };
+        let source = Source {
+            name: "x.vdb".into(),
+            grid: "density".into(),
+            size: 1,
+            mtime: 2,
+        };
+        let h = header(&g, &transfer, &settings, source, false);
+        (g, transfer, h)
+    }
+
+    #[test]
+    fn round_trip_is_bit_exact_and_damage_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.vtc");
+        let (g, t, h) = tiny();
+        write(&path, &h, &g, &t).unwrap();
+        let back = read(&path).unwrap();
+        assert_eq!(back.header, h);
+        assert_eq!(back.transfer.t_ri, t.t_ri);
+        assert_eq!(back.transfer.f_ms, t.f_ms);
+        assert_eq!(back.transfer.layout.voxels(), t.layout.voxels());
+        assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
+        let bytes = std::fs::read(&path).unwrap();
+        for cut in 0..bytes.len() {
+            assert!(read_bytes(&bytes[..cut]).is_err(), "cut at {cut}");
+        }
+        for at in (0..bytes.len()).step_by(7) {
+            let mut b = bytes.clone();
+            b[at] ^= 0x10;
+            assert!(read_bytes(&b).is_err(), "flip at {at}");
+        }
+    }
+}
