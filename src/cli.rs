@@ -40,6 +40,8 @@ pub enum Command {
     Env(EnvArgs),
     /// Bake a VDB density into a transfer cache (.vtc): single and multiple scattering.
     Bake(BakeCmd),
+    /// Render a volume lit by an environment, with multiple scattering (.exr or .png).
+    Render(RenderArgs),
 }
 
 /// Default extinction per world unit per unit density (DESIGN.md).
@@ -224,4 +226,96 @@ impl GlobalArgs {
         }
         Ok(std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
+}
+
+/// `vscatter render IN -o OUT.(exr|png)`.
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// The volume: a VDB (its transfer is baked first, with the bake options) or a .vtc cache.
+    #[arg(value_name = "IN")]
+    pub input: PathBuf,
+    /// The image to write: .exr (linear RGBA plus direct, indirect and depth layers) or .png.
+    #[arg(short, long, value_name = "OUT")]
+    pub output: PathBuf,
+    /// Latlong environment (.exr or .hdr), or `sky` for the built-in sky.
+    #[arg(long, value_name = "ENV", default_value = crate::env::SKY_SPEC)]
+    pub env: String,
+    /// Multiplies the environment's radiance.
+    #[arg(long, value_name = "F", default_value_t = 1.0)]
+    pub env_scale: f32,
+    /// Turns the environment about +Y, degrees.
+    #[arg(
+        long,
+        value_name = "DEG",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    pub env_rotate: f64,
+    /// Windowing of the environment's SH coefficients against ringing (thesis eq. 6.1).
+    #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
+    pub window: crate::sh::Window,
+    /// Image size.
+    #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_resolution)]
+    pub res: (u32, u32),
+    /// Camera position (default: framing the volume from +Z).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub camera_pos: Option<[f32; 3]>,
+    /// Point the camera looks at (default: the centre of the volume).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub lookat: Option<[f32; 3]>,
+    /// The camera's up direction.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true,
+          default_value = "0,1,0")]
+    pub up: [f32; 3],
+    /// Horizontal field of view, degrees.
+    #[arg(long, value_name = "DEG", default_value_t = 45.0)]
+    pub fov: f32,
+    /// Samples per pixel (box filter).
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub spp: u32,
+    /// Exposure in stops for PNG output.
+    #[arg(
+        long,
+        value_name = "EV",
+        default_value_t = 0.0,
+        allow_negative_numbers = true
+    )]
+    pub exposure: f32,
+    /// No environment behind the volume: transparent where it is thin (premultiplied alpha).
+    #[arg(long)]
+    pub no_background: bool,
+    /// Write EXR as half floats.
+    #[arg(long)]
+    pub exr_half: bool,
+    #[command(flatten)]
+    pub bake: BakeArgs,
+}
+
+/// `WxH`, both at least 1 (the camera bounds the area).
+fn parse_resolution(s: &str) -> std::result::Result<(u32, u32), String> {
+    let bad = || format!("{s:?}: expected WIDTHxHEIGHT, e.g. 1280x720");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let w: u32 = w.trim().parse().map_err(|_| bad())?;
+    let h: u32 = h.trim().parse().map_err(|_| bad())?;
+    if w == 0 || h == 0 {
+        return Err(format!("{s:?}: both sides must be at least 1"));
+    }
+    Ok((w, h))
+}
+
+/// `X,Y,Z`, three finite numbers.
+fn parse_vec3(s: &str) -> std::result::Result<[f32; 3], String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    let bad = || format!("{s:?}: expected three numbers X,Y,Z");
+    if parts.len() != 3 {
+        return Err(bad());
+    }
+    let mut v = [0.0f32; 3];
+    for (o, p) in v.iter_mut().zip(&parts) {
+        *o = p.trim().parse().map_err(|_| bad())?;
+        if !o.is_finite() {
+            return Err(bad());
+        }
+    }
+    Ok(v)
 }

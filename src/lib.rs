@@ -10,6 +10,8 @@ pub mod error;
 pub mod image;
 pub mod info;
 pub mod progress;
+pub mod render;
+pub mod render_cmd;
 pub mod sh;
 pub mod transfer;
 pub mod volume;
@@ -29,5 +31,6 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Info(args) => info::run(&args),
         Command::Env(args) => env_cmd::run(&args),
         Command::Bake(args) => bake::run(&args, &cli.global),
+        Command::Render(args) => render_cmd::run(&args, &cli.global),
     }
 }

@@ -431,13 +431,13 @@ pub fn slot_offset(slot: usize) -> IVec3 {
 
 /// Corner `n` of a unit cell, bits (x, y, z) = (n>>2, n>>1, n) & 1.
 #[inline]
-fn corner(n: usize) -> IVec3 {
+pub(crate) fn corner(n: usize) -> IVec3 {
     IVec3::new((n >> 2) as i32 & 1, (n >> 1) as i32 & 1, n as i32 & 1)
 }
 
 /// Trilinear blend of corner values `c` (ordered as [`corner`]) at fractions `f`.
 #[inline]
-fn trilinear(c: [f32; 8], f: Vec3) -> f32 {
+pub(crate) fn trilinear(c: [f32; 8], f: Vec3) -> f32 {
     let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
     let x00 = lerp(c[0], c[4], f.x);
     let x01 = lerp(c[1], c[5], f.x);

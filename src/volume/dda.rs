@@ -1,0 +1,513 @@
+//! Empty-space skipping: a hierarchical DDA over the sparse tree, in the spirit of OpenVDB's
+//! `VolumeHDDA` / `VolumeRayIntersector`. Given an index-space ray it yields the maximal t-intervals
+//! ("spans") where the ray crosses 8³ blocks whose trilinear density can be non-zero, stepping over
+//! whole empty 128³ nodes at the coarse level and empty blocks at the fine level, with the largest
+//! density each span can see (a majorant).
+//!
+//! **Dilation.** A trilinear sample at p reads the voxels floor(p) + {0,1}³, so a point of block B
+//! can see density stored in a neighbouring block. Block B therefore counts as occupied when any
+//! block of its 3×3×3 neighbourhood holds density. The one-sided {0,1}³ neighbourhood would be
+//! enough in exact arithmetic; the full 3×3×3 one also covers every point within one voxel of B,
+//! so a sample whose position rounds across a block face is never wrongly skipped — which is what
+//! makes "skipping changes nothing" hold bit for bit.
+//!
+//! **Levels.** Leaves and block tiles are dilated into a block map. A 128³ node tile marks its node
+//! dense (no block lookups inside) and its one-block shell into the block map. A root tile (4096³)
+//! marks itself dense and the ring of nodes around it dense: its block shell would be 1.5 million
+//! entries, and root tiles are rare, so up to one node of empty space beside it is marched instead.
+//!
+//! Cells cover half-open index intervals: block b spans [8b, 8b+8), as `floor` in sampling does.
+
+use std::ops::ControlFlow;
+
+use glam::{DVec3, IVec3};
+use hashbrown::HashMap;
+
+use crate::volume::sparse::{SparseGrid, TileLevel, LEAF_LOG2};
+
+/// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
+const NODE_LOG2: i32 = 7;
+/// log2 of a node's edge in blocks.
+const BLOCKS_PER_NODE_LOG2: i32 = NODE_LOG2 - LEAF_LOG2 as i32;
+/// log2 of a root tile's edge in nodes.
+const NODES_PER_ROOT_LOG2: i32 = TileLevel::Root as i32 - NODE_LOG2;
+
+/// A maximal interval of ray parameters through occupied cells.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Span {
+    pub t0: f64,
+    pub t1: f64,
+    /// An upper bound of the trilinear density anywhere in the span.
+    pub max_density: f32,
+}
+
+/// What the coarse level knows about a 128³ node.
+#[derive(Debug, Clone, Copy)]
+enum NodeCell {
+    /// Every block is occupied; the value bounds the density of the whole node.
+    Dense(f32),
+    /// Some blocks are occupied: look them up in the block map.
+    Partial,
+}
+
+/// The dilated occupancy of a grid, built once and shared by every ray.
+pub struct Occupancy {
+    /// Occupied blocks (key = voxel >> 3) of partial nodes, with their dilated maximum.
+    blocks: HashMap<IVec3, f32>,
+    /// Nodes (key = voxel >> 7) that hold any occupied block.
+    nodes: HashMap<IVec3, NodeCell>,
+    /// Root tiles (key = voxel >> 12): every node inside is dense; the value bounds the density of
+    /// the tile and its one-voxel surroundings.
+    roots: HashMap<IVec3, f32>,
+    /// Index-space box around every occupied cell; rays are clipped to it before walking.
+    bounds: Option<(DVec3, DVec3)>,
+}
+
+fn raise(map: &mut HashMap<IVec3, f32>, key: IVec3, value: f32) {
+    let m = map.entry(key).or_insert(value);
+    *m = m.max(value);
+}
+
+fn neighbourhood(key: IVec3) -> impl Iterator<Item = IVec3> {
+    (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
+}
+
+/// The cells of the box `[lo − 1, hi + 1]` that lie outside `[lo, hi]`.
+fn shell(lo: IVec3, hi: IVec3) -> impl Iterator<Item = IVec3> {
+    (lo.x - 1..=hi.x + 1).flat_map(move |x| {
+        (lo.y - 1..=hi.y + 1).flat_map(move |y| {
+            (lo.z - 1..=hi.z + 1).filter_map(move |z| {
+                let c = IVec3::new(x, y, z);
+                (c.cmplt(lo).any() || c.cmpgt(hi).any()).then_some(c)
+            })
+        })
+    })
+}
+
+impl Occupancy {
+    pub fn build(grid: &SparseGrid) -> Occupancy {
+        let mut blocks = HashMap::new();
+        let leaves = grid
+            .leaves()
+            .iter()
+            .map(|l| (l.origin, l.max))
+            .chain(grid.tiles(TileLevel::Block));
+        for (origin, max) in leaves {
+            if max > 0.0 {
+                neighbourhood(origin >> LEAF_LOG2).for_each(|b| raise(&mut blocks, b, max));
+            }
+        }
+        let mut dense: HashMap<IVec3, f32> = HashMap::new();
+        for (origin, value) in grid.tiles(TileLevel::Node) {
+            if value > 0.0 {
+                let node = origin >> NODE_LOG2;
+                raise(&mut dense, node, value);
+                let lo = node << BLOCKS_PER_NODE_LOG2;
+                let hi = lo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
+                shell(lo, hi).for_each(|b| raise(&mut blocks, b, value));
+            }
+        }
+        let mut roots = HashMap::new();
+        for (origin, value) in grid.tiles(TileLevel::Root) {
+            if value > 0.0 {
+                let root = origin >> TileLevel::Root.log2() as i32;
+                raise(&mut roots, root, value);
+                let lo = root << NODES_PER_ROOT_LOG2;
+                let hi = lo + IVec3::splat((1 << NODES_PER_ROOT_LOG2) - 1);
+                shell(lo, hi).for_each(|n| raise(&mut dense, n, value));
+            }
+        }
+        // A dense node bounds the dilated blocks inside it; a root tile bounds everything inside.
+        for (&b, &v) in &blocks {
+            if let Some(d) = dense.get_mut(&(b >> BLOCKS_PER_NODE_LOG2)) {
+                *d = d.max(v);
+            }
+        }
+        let root_of = |n: IVec3| n >> NODES_PER_ROOT_LOG2;
+        let mut root_raise: Vec<(IVec3, f32)> = Vec::new();
+        for (&b, &v) in &blocks {
+            root_raise.push((root_of(b >> BLOCKS_PER_NODE_LOG2), v));
+        }
+        for (&n, &v) in &dense {
+            root_raise.push((root_of(n), v));
+        }
+        for (r, v) in root_raise {
+            if let Some(m) = roots.get_mut(&r) {
+                *m = m.max(v);
+            }
+        }
+        let mut nodes: HashMap<IVec3, NodeCell> = HashMap::new();
+        for &b in blocks.keys() {
+            nodes.insert(b >> BLOCKS_PER_NODE_LOG2, NodeCell::Partial);
+        }
+        for (&n, &v) in &dense {
+            nodes.insert(n, NodeCell::Dense(v));
+        }
+        // Bounds: every occupied cell (root interiors are enclosed by their dense ring nodes).
+        let mut lo = DVec3::INFINITY;
+        let mut hi = DVec3::NEG_INFINITY;
+        let mut cover = |key: IVec3, log2: i32| {
+            let size = (1i64 << log2) as f64;
+            let a = key.as_dvec3() * size;
+            lo = lo.min(a);
+            hi = hi.max(a + size);
+        };
+        blocks.keys().for_each(|&b| cover(b, LEAF_LOG2 as i32));
+        dense.keys().for_each(|&n| cover(n, NODE_LOG2));
+        let bounds = (lo.x <= hi.x).then_some((lo, hi));
+        Occupancy {
+            blocks,
+            nodes,
+            roots,
+            bounds,
+        }
+    }
+
+    fn node(&self, key: IVec3) -> Option<NodeCell> {
+        if let Some(&m) = self.roots.get(&(key >> NODES_PER_ROOT_LOG2)) {
+            return Some(NodeCell::Dense(m));
+        }
+        self.nodes.get(&key).copied()
+    }
+
+    /// Calls `f` with each span of the ray `origin + t·dir`, t ∈ [t0, t1], in order of t, until `f`
+    /// breaks. `dir` need not be unit length; spans are in its parameter.
+    pub fn visit_spans(
+        &self,
+        origin: DVec3,
+        dir: DVec3,
+        t0: f64,
+        t1: f64,
+        mut f: impl FnMut(Span) -> ControlFlow<()>,
+    ) {
+        let Some((lo, hi)) = self.bounds else { return };
+        // A non-finite ray could stall the walk (zero cell steps); it crosses nothing measurable.
+        if !(origin.is_finite() && dir.is_finite()) || dir == DVec3::ZERO {
+            return;
+        }
+        let Some((t0, t1)) = clip_to_box(origin, dir, t0, t1, lo, hi) else {
+            return;
+        };
+        let mut pending: Option<Span> = None;
+        let whole = (IVec3::MIN, IVec3::MAX);
+        let flow = walk(origin, dir, t0, t1, NODE_LOG2, whole, |node, ta, tb| {
+            match self.node(node) {
+                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m),
+                Some(NodeCell::Partial) => {
+                    let blo = node << BLOCKS_PER_NODE_LOG2;
+                    let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
+                    let b_log2 = LEAF_LOG2 as i32;
+                    walk(origin, dir, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
+                        match self.blocks.get(&b) {
+                            Some(&m) => extend(&mut pending, tc, td, m),
+                            None => {
+                                if let Some(s) = pending.take() {
+                                    f(s)?;
+                                }
+                            }
+                        }
+                        ControlFlow::Continue(())
+                    })?;
+                }
+                None => {
+                    if let Some(s) = pending.take() {
+                        f(s)?;
+                    }
+                }
+            }
+            ControlFlow::Continue(())
+        });
+        if flow.is_continue() {
+            if let Some(s) = pending {
+                let _ = f(s);
+            }
+        }
+    }
+
+    /// All spans of a ray, for tests and tools; the march uses [`Occupancy::visit_spans`].
+    pub fn spans(&self, origin: DVec3, dir: DVec3, t0: f64, t1: f64) -> Vec<Span> {
+        let mut out = Vec::new();
+        self.visit_spans(origin, dir, t0, t1, |s| {
+            out.push(s);
+            ControlFlow::Continue(())
+        });
+        out
+    }
+}
+
+/// Grows the open span by the occupied cell [ta, tb]: consecutive occupied cells are contiguous,
+/// so they merge; an empty cell (handled by the caller) ends a span.
+fn extend(pending: &mut Option<Span>, ta: f64, tb: f64, m: f32) {
+    match pending {
+        Some(s) => {
+            s.t1 = tb;
+            s.max_density = s.max_density.max(m);
+        }
+        None => {
+            *pending = Some(Span {
+                t0: ta,
+                t1: tb,
+                max_density: m,
+            })
+        }
+    }
+}
+
+/// The part of [t0, t1] where `origin + t·dir` lies in the box [lo, hi] (slab test).
+pub fn clip_to_box(
+    origin: DVec3,
+    dir: DVec3,
+    t0: f64,
+    t1: f64,
+    lo: DVec3,
+    hi: DVec3,
+) -> Option<(f64, f64)> {
+    let (mut a, mut b) = (t0, t1);
+    for axis in 0..3 {
+        let (o, d) = (origin[axis], dir[axis]);
+        if d == 0.0 {
+            if o < lo[axis] || o > hi[axis] {
+                return None;
+            }
+        } else {
+            let ta = (lo[axis] - o) / d;
+            let tb = (hi[axis] - o) / d;
+            a = a.max(ta.min(tb));
+            b = b.min(ta.max(tb));
+        }
+    }
+    (a < b).then_some((a, b))
+}
+
+/// Amanatides–Woo walk over cells of edge 2^`log2` voxels, from t0 to t1, cells clamped to
+/// `range` (so a walk started on a node face stays in that node). Calls `visit(cell, ta, tb)` for
+/// every cell crossed over a non-empty interval.
+fn walk(
+    origin: DVec3,
+    dir: DVec3,
+    t0: f64,
+    t1: f64,
+    log2: i32,
+    range: (IVec3, IVec3),
+    mut visit: impl FnMut(IVec3, f64, f64) -> ControlFlow<()>,
+) -> ControlFlow<()> {
+    let size = (1i64 << log2) as f64;
+    let start = (origin + dir * t0) / size;
+    // `as` saturates, so even an absurd coordinate gives a valid (clamped) cell.
+    let mut cell = IVec3::new(
+        start.x.floor() as i32,
+        start.y.floor() as i32,
+        start.z.floor() as i32,
+    )
+    .clamp(range.0, range.1);
+    let mut step = IVec3::ZERO;
+    let mut t_max = DVec3::INFINITY;
+    let mut t_delta = DVec3::INFINITY;
+    for axis in 0..3 {
+        let d = dir[axis];
+        if d != 0.0 {
+            let c = cell[axis] as f64;
+            let boundary = if d > 0.0 { c + 1.0 } else { c } * size;
+            step[axis] = if d > 0.0 { 1 } else { -1 };
+            t_max[axis] = (boundary - origin[axis]) / d;
+            t_delta[axis] = size / d.abs();
+        }
+    }
+    let mut t = t0;
+    loop {
+        let t_next = t_max.min_element().min(t1);
+        if t_next > t {
+            visit(cell, t, t_next)?;
+        }
+        if t_next >= t1 {
+            return ControlFlow::Continue(());
+        }
+        let axis = if t_max.x <= t_max.y && t_max.x <= t_max.z {
+            0
+        } else if t_max.y <= t_max.z {
+            1
+        } else {
+            2
+        };
+        cell[axis] = cell[axis].saturating_add(step[axis]);
+        if cell[axis] < range.0[axis] || cell[axis] > range.1[axis] {
+            return ControlFlow::Continue(());
+        }
+        t_max[axis] += t_delta[axis];
+        t = t.max(t_next);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::sparse::{Leaf, LEAF_VOXELS};
+    use crate::volume::Transform;
+
+    const EPS: f64 = 1e-5;
+
+    /// A leaf at `origin` with one active voxel of value `v` at its first slot.
+    fn add_leaf(g: &mut SparseGrid, origin: IVec3, v: f32) {
+        let mut mask = [0u64; 8];
+        let mut values = [0.0; LEAF_VOXELS];
+        let s = Leaf::slot(origin + IVec3::new(3, 3, 3));
+        mask[s >> 6] |= 1 << (s & 63);
+        values[s] = v;
+        g.insert_leaf(origin, mask, values);
+    }
+
+    fn grid() -> SparseGrid {
+        SparseGrid::new(Transform::default(), 0.0)
+    }
+
+    fn check(got: &[Span], want: &[(f64, f64, f32)]) {
+        assert_eq!(got.len(), want.len(), "spans {got:?}, want {want:?}");
+        for (s, w) in got.iter().zip(want) {
+            assert!(
+                (s.t0 - w.0).abs() < EPS && (s.t1 - w.1).abs() < EPS,
+                "span {s:?}, want {w:?}"
+            );
+            assert_eq!(s.max_density, w.2);
+        }
+    }
+
+    fn dv(x: f64, y: f64, z: f64) -> DVec3 {
+        DVec3::new(x, y, z)
+    }
+
+    #[test]
+    fn one_leaf_along_an_axis() {
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 0.7);
+        let occ = Occupancy::build(&g);
+        // Dilated: blocks −1..=1 on each axis, index [−8, 16)³; the ray enters at x = −8.
+        let s = occ.spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
+        check(&s, &[(12.0, 36.0, 0.7)]);
+        // Backwards, and the same ray cut short by t1.
+        let s = occ.spans(dv(40.0, 3.5, 3.5), -DVec3::X, 0.0, 30.0);
+        check(&s, &[(24.0, 30.0, 0.7)]);
+        // Parameter scaled by a non-unit direction.
+        let s = occ.spans(dv(-20.0, 3.5, 3.5), dv(2.0, 0.0, 0.0), 0.0, 100.0);
+        check(&s, &[(6.0, 18.0, 0.7)]);
+    }
+
+    #[test]
+    fn two_leaves_with_a_gap_and_touching() {
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 0.5);
+        add_leaf(&mut g, IVec3::new(32, 0, 0), 2.0);
+        let occ = Occupancy::build(&g);
+        // [−8, 16) and [24, 48): block 2 ([16, 24)) is beyond both dilations.
+        let s = occ.spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
+        check(&s, &[(12.0, 36.0, 0.5), (44.0, 68.0, 2.0)]);
+        // Leaves in blocks 0 and 3: dilations [−8, 16) and [16, 40) touch and merge into one span.
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 0.5);
+        add_leaf(&mut g, IVec3::new(24, 0, 0), 2.0);
+        let s = Occupancy::build(&g).spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
+        check(&s, &[(12.0, 60.0, 2.0)]);
+    }
+
+    #[test]
+    fn leaf_dilation_crosses_a_node_face() {
+        let mut g = grid();
+        // Block 15 is the last of node 0; its dilation reaches block 16 in node 1.
+        add_leaf(&mut g, IVec3::new(120, 0, 0), 1.0);
+        let s = Occupancy::build(&g).spans(dv(100.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
+        check(&s, &[(12.0, 36.0, 1.0)]);
+    }
+
+    #[test]
+    fn node_tile_is_one_dense_span_with_its_shell() {
+        let mut g = grid();
+        g.insert_tile(TileLevel::Node, IVec3::ZERO, 0.25);
+        let occ = Occupancy::build(&g);
+        // Node [0, 128) plus a one-block shell: [−8, 136).
+        let s = occ.spans(dv(-50.0, 64.0, 64.0), DVec3::X, 0.0, 1000.0);
+        check(&s, &[(42.0, 186.0, 0.25)]);
+        // A leaf right beside the tile raises the majorant of the merged span.
+        add_leaf(&mut g, IVec3::new(128, 64, 64), 3.0);
+        let s = Occupancy::build(&g).spans(dv(-50.0, 64.5, 64.5), DVec3::X, 0.0, 1000.0);
+        check(&s, &[(42.0, 194.0, 3.0)]);
+    }
+
+    #[test]
+    fn root_tile_is_dense_with_a_ring_of_nodes() {
+        let mut g = grid();
+        g.insert_tile(TileLevel::Root, IVec3::ZERO, 0.125);
+        let occ = Occupancy::build(&g);
+        // Root [0, 4096) plus a ring of one node: [−128, 4224).
+        let s = occ.spans(dv(-1000.0, 100.0, 2000.0), DVec3::X, 0.0, 1e9);
+        check(&s, &[(872.0, 5224.0, 0.125)]);
+        let s = occ.spans(dv(-1000.0, -500.0, 2000.0), DVec3::X, 0.0, 1e9);
+        check(&s, &[]);
+    }
+
+    #[test]
+    fn diagonal_ray_through_two_leaves() {
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 1.0);
+        add_leaf(&mut g, IVec3::new(16, 32, 8), 4.0);
+        let occ = Occupancy::build(&g);
+        // p(t) = (−4, −20, 2) + t·(0.5, 1, 0.25).
+        // Leaf A, dilated [−8,16)³: x → t∈[−8,40), y → [12,36), z → [−40,56): [12, 36).
+        // Leaf B, dilated [8,32)×[24,48)×[0,24): x → [24,72), y → [44,68), z → [−8,88): [44, 68).
+        let s = occ.spans(dv(-4.0, -20.0, 2.0), dv(0.5, 1.0, 0.25), -100.0, 200.0);
+        check(&s, &[(12.0, 36.0, 1.0), (44.0, 68.0, 4.0)]);
+    }
+
+    #[test]
+    fn ray_starting_inside() {
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 1.0);
+        let occ = Occupancy::build(&g);
+        check(
+            &occ.spans(dv(4.0, 4.0, 4.0), DVec3::Z, 0.0, 100.0),
+            &[(0.0, 12.0, 1.0)],
+        );
+        check(
+            &occ.spans(dv(4.0, 4.0, 4.0), -DVec3::Z, 0.0, 100.0),
+            &[(0.0, 12.0, 1.0)],
+        );
+    }
+
+    #[test]
+    fn rays_missing_everything() {
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 1.0);
+        let occ = Occupancy::build(&g);
+        assert!(occ
+            .spans(dv(-20.0, 40.0, 4.0), DVec3::X, 0.0, 100.0)
+            .is_empty());
+        // Pointing away, and too short to arrive.
+        assert!(occ
+            .spans(dv(-20.0, 4.0, 4.0), -DVec3::X, 0.0, 100.0)
+            .is_empty());
+        assert!(occ
+            .spans(dv(-20.0, 4.0, 4.0), DVec3::X, 0.0, 11.0)
+            .is_empty());
+        // An empty grid, and a grid whose only leaf holds zeros.
+        assert!(Occupancy::build(&grid())
+            .spans(DVec3::ZERO, DVec3::X, -1e9, 1e9)
+            .is_empty());
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 0.0);
+        assert!(Occupancy::build(&g)
+            .spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0)
+            .is_empty());
+    }
+
+    #[test]
+    fn breaking_stops_the_walk() {
+        let mut g = grid();
+        add_leaf(&mut g, IVec3::ZERO, 1.0);
+        add_leaf(&mut g, IVec3::new(32, 0, 0), 1.0);
+        let occ = Occupancy::build(&g);
+        let mut seen = 0;
+        occ.visit_spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0, |_| {
+            seen += 1;
+            ControlFlow::Break(())
+        });
+        assert_eq!(seen, 1);
+    }
+}

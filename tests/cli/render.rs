@@ -1,0 +1,140 @@
+//! `vscatter render`: a real render of a fixture to EXR (with its layers) and PNG, and bad flags.
+
+use exr::prelude::ReadChannels as _;
+use exr::prelude::ReadLayers as _;
+
+use crate::{assert_clean_failure, fixture, stderr, vscatter_in};
+
+/// Flags that keep the on-the-fly bake of a small fixture quick.
+const QUICK_BAKE: [&str; 6] = ["--bands", "3", "--scale", "4", "--samples", "64"];
+
+#[test]
+fn render_writes_an_exr_with_layers_and_a_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("small_cloud.vdb");
+    let mut args = vec![
+        "render",
+        input.to_str().unwrap(),
+        "-o",
+        "out.exr",
+        "--res",
+        "24x16",
+        "--sigma-t",
+        "20",
+        "--stats",
+    ];
+    args.extend(QUICK_BAKE);
+    let out = vscatter_in(dir.path(), &args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stats: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&out.stdout).trim()).unwrap();
+    assert_eq!(stats["rays"], 24 * 16);
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(dir.path().join("out.exr"))
+        .unwrap();
+    let names: Vec<String> = image
+        .layer_data
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect();
+    for want in ["R", "G", "B", "A", "direct.R", "indirect.B", "depth.Z"] {
+        assert!(
+            names.iter().any(|n| n == want),
+            "{want} missing from {names:?}"
+        );
+    }
+    assert_eq!(image.layer_data.size, exr::math::Vec2(24, 16));
+
+    let mut args = vec![
+        "render",
+        input.to_str().unwrap(),
+        "-o",
+        "out.png",
+        "--res",
+        "24x16",
+        "--no-background",
+        "--camera-pos",
+        "-3,1,2",
+        "--single-scatter",
+    ];
+    args.extend(QUICK_BAKE);
+    let out = vscatter_in(dir.path(), &args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // A cache renders the same as the VDB it was baked from, with the same bake flags.
+    let mut args = vec![
+        "bake",
+        input.to_str().unwrap(),
+        "-o",
+        "c.vtc",
+        "--sigma-t",
+        "20",
+    ];
+    args.extend(QUICK_BAKE);
+    let out = vscatter_in(dir.path(), &args);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let from_cache = [
+        "render",
+        "c.vtc",
+        "-o",
+        "cache.exr",
+        "--res",
+        "24x16",
+        "--stats",
+    ];
+    let out = vscatter_in(dir.path(), &from_cache);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stats: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&out.stdout).trim()).unwrap();
+    assert_eq!(stats["from_cache"], true);
+    let read = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
+    assert_eq!(read("cache.exr"), read("out.exr"));
+    for f in ["c.vtc", "cache.exr"] {
+        std::fs::remove_file(dir.path().join(f)).unwrap();
+    }
+
+    let mut files: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    files.sort();
+    assert_eq!(files, ["out.exr", "out.png"]);
+}
+
+#[test]
+fn render_refuses_bad_flags_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("small_cloud.vdb");
+    let input = input.to_str().unwrap();
+    let cases: [(&[&str], i32, &str); 6] = [
+        (&["render", input, "-o", "x.png", "--spp", "0"], 2, "--spp"),
+        (&["render", input, "-o", "x.tif"], 2, "x.tif"),
+        (
+            &["render", input, "-o", "x.png", "--albedo", "1.5"],
+            2,
+            "--albedo",
+        ),
+        (
+            &["render", input, "-o", "x.png", "--fov", "180"],
+            2,
+            "--fov",
+        ),
+        (
+            &["render", input, "-o", "x.png", "--bands", "0"],
+            2,
+            "--bands",
+        ),
+        (&["render", "missing.vdb", "-o", "x.png"], 1, "missing.vdb"),
+    ];
+    for (args, code, names) in cases {
+        let out = vscatter_in(dir.path(), args);
+        assert_clean_failure(&out, code, names);
+    }
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
