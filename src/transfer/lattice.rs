@@ -276,30 +276,36 @@ fn segment(acc: &mut Accessor, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> S
     let mut rho = [0f32; MAX_SEGMENT_STEPS];
     let steps = steps.min(MAX_SEGMENT_STEPS);
     for (i, r) in rho.iter_mut().enumerate().take(steps) {
-        *r = acc.sample(a + (b - a) * ((i as f32 + 0.5) / steps as f32)).max(0.0);
+        *r = acc
+            .sample(a + (b - a) * ((i as f32 + 0.5) / steps as f32))
+            .max(0.0);
     }
-    let tau_of = |i: usize| sigma_t * rho[i] * dl;
+    let mut taus = [0f32; MAX_SEGMENT_STEPS];
+    for (t, r) in taus.iter_mut().zip(&rho).take(steps) {
+        *t = sigma_t * r * dl;
+    }
+    let (rho, taus) = (&rho[..steps], &taus[..steps]);
     // Entering flux: transmittance and the track it spends inside.
     let (mut tau, mut track_in) = (0.0f32, 0.0f32);
-    for i in 0..steps {
-        track_in += dl * (-(tau + 0.5 * tau_of(i))).exp();
-        tau += tau_of(i);
+    for t in taus {
+        track_in += dl * (-(tau + 0.5 * t)).exp();
+        tau += t;
     }
     // Emission at sub-step i, weighted by ρ_i: share escaping past the end, track until then.
     let (mut weight, mut escape, mut track_emit) = (0.0f32, 0.0f32, 0.0f32);
-    for i in 0..steps {
-        if rho[i] <= 0.0 {
+    for (i, (&r, &t)) in rho.iter().zip(taus).enumerate() {
+        if r <= 0.0 {
             continue;
         }
-        let mut depth = 0.5 * tau_of(i);
-        let mut track = 0.5 * dl * (-0.25 * tau_of(i)).exp();
-        for m in i + 1..steps {
-            track += dl * (-(depth + 0.5 * tau_of(m))).exp();
-            depth += tau_of(m);
+        let mut depth = 0.5 * t;
+        let mut track = 0.5 * dl * (-0.25 * t).exp();
+        for &later in &taus[i + 1..] {
+            track += dl * (-(depth + 0.5 * later)).exp();
+            depth += later;
         }
-        weight += rho[i];
-        escape += rho[i] * (-depth).exp();
-        track_emit += rho[i] * track;
+        weight += r;
+        escape += r * (-depth).exp();
+        track_emit += r * track;
     }
     let (escape, track_emit) = if weight > 0.0 {
         (escape / weight, track_emit / weight)
@@ -432,9 +438,7 @@ pub fn bake_multiple(
     let (head, stats) = transport_chunk(&links, first, 0, chunks[0].1, None);
     let rest: Vec<Vec<f32>> = chunks[1..]
         .par_iter()
-        .map(|&(c0, w)| {
-transport_chunk(&links, first, c0, w, Some(stats.generations)).0
-        })
+        .map(|&(c0, w)| transport_chunk(&links, first, c0, w, Some(stats.generations)).0)
         .collect();
     let mut f_ms = vec![0f32; n * coeffs];
     for (&(c0, w), part) in chunks.iter().zip(std::iter::once(&head).chain(&rest)) {

@@ -14,8 +14,8 @@ use rayon::prelude::*;
 use super::grid::TransferLayout;
 use super::Medium;
 use crate::sh;
-use crate::volume::transmittance::OpticalDepth;
 use crate::volume::sparse::Accessor;
+use crate::volume::transmittance::OpticalDepth;
 use crate::volume::SparseGrid;
 
 /// Independently rotated direction sets: enough that neighbouring voxels rarely share one, few
@@ -251,7 +251,8 @@ mod tests {
             medium,
             settings,
             &indicatif::ProgressBar::hidden(),
-        );
+        )
+        .t_ri;
         let dc = (4.0 * std::f32::consts::PI).sqrt();
         for c in t.chunks_exact(16) {
             assert!((c[0] - dc).abs() < 1e-4);

@@ -39,7 +39,14 @@ fn furnace_deviation(density: &SparseGrid, t: &Transfer) -> (f32, f32, usize) {
 
 #[test]
 fn white_furnace_scratch() {
-    for (file, sigma, k) in [("cloud.vdb", 0.25, 6), ("cloud.vdb", 0.5, 6), ("cloud.vdb", 1.0, 6), ("cloud.vdb", 2.0, 6), ("torus.vdb", 2.0, 6), ("torus.vdb", 2.0, 3)] {
+    for (file, sigma, k) in [
+        ("cloud.vdb", 0.25, 6),
+        ("cloud.vdb", 0.5, 6),
+        ("cloud.vdb", 1.0, 6),
+        ("cloud.vdb", 2.0, 6),
+        ("torus.vdb", 2.0, 6),
+        ("torus.vdb", 2.0, 3),
+    ] {
         let d = load(file);
         let settings = BakeSettings {
             bands: 1,
@@ -59,7 +66,8 @@ fn white_furnace_scratch() {
             true,
         );
         let (worst, mean, n) = furnace_deviation(&d, &t);
-        let l = stats.lattice.unwrap(); println!("{file} s{sigma} k{k}: voxels {} deep {n} worst {worst:.3} mean {mean:.3} gens {} rem {:.1e} E1 {:.0} Ems {:.0} t {:.1} {:.1}", t.layout.len(), l.generations, l.remaining, l.energy_single, l.energy_multiple, stats.single_seconds, stats.lattice_seconds);
+        let l = stats.lattice.unwrap();
+        println!("{file} s{sigma} k{k}: voxels {} deep {n} worst {worst:.3} mean {mean:.3} gens {} rem {:.1e} E1 {:.0} Ems {:.0} t {:.1} {:.1}", t.layout.len(), l.generations, l.remaining, l.energy_single, l.energy_multiple, stats.single_seconds, stats.lattice_seconds);
     }
 }
 
@@ -67,18 +75,40 @@ fn white_furnace_scratch() {
 fn furnace_profile_scratch() {
     let d = load("block_tiles.vdb");
     for sigma in [0.3f32, 1.0] {
-        let settings = BakeSettings { bands: 1, scale: 6, samples: 128, lattice: LatticeKind::All, single_scatter: false, seed: 1 };
-        let (t, stats) = bake(&d, Medium { sigma_t: sigma, albedo: 1.0 }, &settings, true);
+        let settings = BakeSettings {
+            bands: 1,
+            scale: 6,
+            samples: 128,
+            lattice: LatticeKind::All,
+            single_scatter: false,
+            seed: 1,
+        };
+        let (t, stats) = bake(
+            &d,
+            Medium {
+                sigma_t: sigma,
+                albedo: 1.0,
+            },
+            &settings,
+            true,
+        );
         let dc = (4.0 * std::f32::consts::PI).sqrt();
         let mut line = String::new();
         for x in -1..=23 {
             let s = t.layout.slot(IVec3::new(x, 11, 11)).unwrap();
-            line += &format!("{:.2}/{:.2} ", t.t_ri(s)[0] / dc, (t.t_ri(s)[0] + t.f_ms(s)[0]) / dc);
+            line += &format!(
+                "{:.2}/{:.2} ",
+                t.t_ri(s)[0] / dc,
+                (t.t_ri(s)[0] + t.f_ms(s)[0]) / dc
+            );
         }
-        println!("sigma {sigma} gens {:?}\n{line}", stats.lattice.map(|l| l.generations));
+        println!(
+            "sigma {sigma} gens {:?}\n{line}",
+            stats.lattice.map(|l| l.generations)
+        );
         let mut line = String::new();
         for x in -1..=23 {
-            let s = t.layout.slot(IVec3::new(x, x.clamp(0,22), 11)).unwrap();
+            let s = t.layout.slot(IVec3::new(x, x.clamp(0, 22), 11)).unwrap();
             line += &format!("{:.2} ", (t.t_ri(s)[0] + t.f_ms(s)[0]) / dc);
         }
         println!("diag {line}");
