@@ -53,7 +53,7 @@ use rayon::prelude::*;
 
 use super::grid::TransferLayout;
 use super::Medium;
-use crate::volume::sparse::Accessor;
+use crate::volume::sampler::BlockSampler;
 use crate::volume::transmittance::STEP_VOXELS;
 use crate::volume::SparseGrid;
 
@@ -222,7 +222,7 @@ fn build_links(
         .zip(layout.voxels().par_iter())
         .for_each(
             |((((((target, trans), escape), track_in), track_emit), boost), &v)| {
-                let mut acc = Accessor::new(density);
+                let mut acc = BlockSampler::new(density);
                 let mut self_share = 0.0f64;
                 for (j, off) in dirs.offsets.iter().enumerate() {
                     let mut step = v + *off;
@@ -270,7 +270,7 @@ const SEGMENT_STEP_VOXELS: f32 = STEP_VOXELS;
 /// Marches the segment from index point `a` to `b` (world length `length`). Emission is spread
 /// along it in proportion to the density, as collisions are; ε and the emitted track are the
 /// density-weighted means of what escapes and how far it travels inside.
-fn segment(acc: &mut Accessor, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> Segment {
+fn segment(acc: &mut BlockSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> Segment {
     let steps = (((b - a).length() / SEGMENT_STEP_VOXELS).ceil() as usize).max(1);
     let dl = length / steps as f32;
     let mut rho = [0f32; MAX_SEGMENT_STEPS];

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use super::grid::TransferLayout;
 use super::Medium;
 use crate::sh;
-use crate::volume::sparse::Accessor;
+use crate::volume::sampler::BlockSampler;
 use crate::volume::transmittance::OpticalDepth;
 use crate::volume::SparseGrid;
 
@@ -146,7 +146,7 @@ pub fn bake_single(
             let set = &sets[s];
             let mut tr = vec![0f32; slots.len() * n];
             let mut gathered = vec![0f32; slots.len() * n];
-            let mut acc = Accessor::new(density);
+            let mut acc = BlockSampler::new(density);
             for ((row, grow), &slot) in tr
                 .chunks_exact_mut(n)
                 .zip(gathered.chunks_exact_mut(n))

@@ -36,6 +36,19 @@ impl<'a> BlockSampler<'a> {
         *self.blocks[i].get_or_insert_with(|| grid.block(key))
     }
 
+    /// What covers block `key`, from the cache when it is one of the eight blocks held.
+    #[inline]
+    pub fn block_at(&mut self, key: IVec3) -> Block<'a> {
+        // Wrapping: the empty cache holds IVec3::MIN, and real keys (voxel >> 3) never wrap into 0..=1.
+        let d = key.wrapping_sub(self.base);
+        if d.cmplt(IVec3::ZERO).any() || d.cmpgt(IVec3::ONE).any() {
+            self.base = key;
+            self.blocks = [None; 8];
+            return self.block(IVec3::ZERO);
+        }
+        self.block(d)
+    }
+
     /// Trilinear density at an index-space point, exactly as [`SparseGrid::sample_index`].
     #[inline]
     pub fn sample(&mut self, p: Vec3) -> f32 {

@@ -350,71 +350,18 @@ impl SparseGrid {
     }
 
     /// Trilinear density at an index-space point.
+    /// The reference implementation: eight lookups; rays use the cached
+    /// [`BlockSampler`](crate::volume::sampler::BlockSampler), which gives identical results.
     pub fn sample_index(&self, p: Vec3) -> f32 {
-        Accessor::new(self).sample(p)
+        let base = p.floor();
+        let i0 = base.as_ivec3();
+        let c = std::array::from_fn(|n| self.value(i0 + corner(n)));
+        trilinear(c, p - base)
     }
 
     /// Trilinear density at a world-space point.
     pub fn sample_world(&self, world: DVec3) -> f32 {
         self.sample_index(self.transform.world_to_index(world).as_vec3())
-    }
-}
-
-/// Cached trilinear sampling, like OpenVDB's `ValueAccessor`: consecutive samples along a ray
-/// mostly fall in the same 8³ block, so the block found by the last hash lookup is kept.
-pub struct Accessor<'a> {
-    grid: &'a SparseGrid,
-    key: IVec3,
-    block: Block<'a>,
-}
-
-impl<'a> Accessor<'a> {
-    pub fn new(grid: &'a SparseGrid) -> Self {
-        // IVec3::MAX is no block's key (keys are voxel >> 3), so the cache starts empty.
-        Accessor {
-            grid,
-            key: IVec3::MAX,
-            block: Block::Constant(grid.background),
-        }
-    }
-
-    /// What covers block `key`, from the cache when it is the last block asked for.
-    #[inline]
-    pub fn block(&mut self, key: IVec3) -> Block<'a> {
-        if key != self.key {
-            self.key = key;
-            self.block = self.grid.block(key);
-        }
-        self.block
-    }
-
-    /// Trilinear density at an index-space point.
-    #[inline]
-    pub fn sample(&mut self, p: Vec3) -> f32 {
-        let base = p.floor();
-        let f = p - base;
-        let i0 = base.as_ivec3();
-        let mut c = [0.0f32; 8];
-        // All eight corners in one 8³ block (7 of 8 cases per axis): one block serves them all.
-        let local = i0 & (LEAF_DIM - 1);
-        if local.max_element() < LEAF_DIM - 1 {
-            match self.block(i0 >> LEAF_LOG2) {
-                Block::Leaf(leaf) => {
-                    let s = Leaf::slot(i0);
-                    const DX: usize = (LEAF_DIM * LEAF_DIM) as usize;
-                    const DY: usize = LEAF_DIM as usize;
-                    for (n, v) in c.iter_mut().enumerate() {
-                        *v = leaf.values[s + (n >> 2) * DX + ((n >> 1) & 1) * DY + (n & 1)];
-                    }
-                }
-                Block::Constant(v) => return v,
-            }
-        } else {
-            for (n, v) in c.iter_mut().enumerate() {
-                *v = self.grid.value(i0 + corner(n));
-            }
-        }
-        trilinear(c, f)
     }
 }
 

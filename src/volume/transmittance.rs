@@ -4,7 +4,8 @@
 
 use glam::Vec3;
 
-use super::sparse::{Accessor, Block, SparseGrid, LEAF_DIM, LEAF_LOG2};
+use super::sampler::BlockSampler;
+use super::sparse::{Block, SparseGrid, LEAF_DIM, LEAF_LOG2};
 
 /// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
 /// under 1 % of the optical depth at one sample per voxel, and half a voxel halves that again.
@@ -78,7 +79,7 @@ impl<'a> OpticalDepth<'a> {
             return 0.0;
         }
         let steps = (end / self.step).ceil() as u32;
-        let mut acc = Accessor::new(self.grid);
+        let mut acc = BlockSampler::new(self.grid);
         let mut tau = 0.0f32;
         let mut k = 0u32;
         while k < steps {
@@ -107,14 +108,14 @@ impl<'a> OpticalDepth<'a> {
     /// If sample `k` at `p` lies where the density is certainly zero — inside the part of an empty
     /// 8³ block whose trilinear cells read only that block — the index of the first sample past
     /// that part; otherwise `None`.
-    fn skip_from(&self, acc: &mut Accessor, p: Vec3, origin: Vec3, v: Vec3, k: u32) -> Option<u32> {
+    fn skip_from(&self, acc: &mut BlockSampler, p: Vec3, origin: Vec3, v: Vec3, k: u32) -> Option<u32> {
         let cell = p.floor().as_ivec3();
         let key = cell >> LEAF_LOG2 as i32;
         let local = cell & (LEAF_DIM - 1);
         if local.max_element() >= LEAF_DIM - 1 {
             return None;
         }
-        let empty = match acc.block(key) {
+        let empty = match acc.block_at(key) {
             Block::Leaf(leaf) => leaf.max <= 0.0,
             Block::Constant(c) => c <= 0.0,
         };
