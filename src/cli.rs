@@ -78,10 +78,10 @@ pub struct BakeArgs {
     #[arg(long, value_name = "NAME")]
     pub grid: Option<String>,
     /// Extinction per world unit at density 1.
-    #[arg(long, value_name = "F", default_value_t = DEFAULT_SIGMA_T)]
+    #[arg(long, value_name = "F", default_value_t = DEFAULT_SIGMA_T, allow_negative_numbers = true)]
     pub sigma_t: f32,
     /// Single-scattering albedo σs/σt, 0 to 1.
-    #[arg(long, value_name = "F", default_value_t = DEFAULT_ALBEDO)]
+    #[arg(long, value_name = "F", default_value_t = DEFAULT_ALBEDO, allow_negative_numbers = true)]
     pub albedo: f32,
     /// SH bands (bands² coefficients per transfer voxel), 1 to 20.
     #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]

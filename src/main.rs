@@ -7,10 +7,19 @@ use clap::Parser;
 fn main() -> ExitCode {
     let cli = match vscatter::cli::Cli::try_parse() {
         Ok(cli) => cli,
-        Err(e) => {
-            // clap prints help/version to stdout (exit 0) and usage errors to stderr (exit 2).
+        Err(e) if !e.use_stderr() => {
+            // --help and --version: clap's own output on stdout.
             let _ = e.print();
-            return ExitCode::from(if e.use_stderr() { 2 } else { 0 });
+            return ExitCode::SUCCESS;
+        }
+        Err(e) => {
+            // Usage errors: one line, like every other error (clap's tips and usage block follow
+            // its first line; `--help` has them).
+            let text = e.render().to_string();
+            let first = text.lines().next().unwrap_or("invalid command line");
+            let first = first.strip_prefix("error: ").unwrap_or(first);
+            eprintln!("vscatter: error: {first} (see `vscatter --help`)");
+            return ExitCode::from(2);
         }
     };
     match vscatter::run(cli) {

@@ -108,7 +108,14 @@ impl<'a> OpticalDepth<'a> {
     /// If sample `k` at `p` lies where the density is certainly zero — inside the part of an empty
     /// 8³ block whose trilinear cells read only that block — the index of the first sample past
     /// that part; otherwise `None`.
-    fn skip_from(&self, acc: &mut BlockSampler, p: Vec3, origin: Vec3, v: Vec3, k: u32) -> Option<u32> {
+    fn skip_from(
+        &self,
+        acc: &mut BlockSampler,
+        p: Vec3,
+        origin: Vec3,
+        v: Vec3,
+        k: u32,
+    ) -> Option<u32> {
         let cell = p.floor().as_ivec3();
         let key = cell >> LEAF_LOG2 as i32;
         let local = cell & (LEAF_DIM - 1);
