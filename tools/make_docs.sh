@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Renders the README's pictures from committed fixtures into docs/:
+#   cloud_sky.png              the set-up command's render: the cloud under the built-in sky
+#   cloud_single.png / cloud_multiple.png   single vs multiple scattering (thesis fig. 6.1)
+#   cloud_studio.png / cloud_split.png      one bake relit by two HDRIs (thesis fig. 6.2)
+#   torus_studio.png           the two intertwined rings (thesis "torus")
+# The relit pair comes from one cache: only the environment changes between them.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+cargo build --release --quiet
+VS=target/release/vscatter
+OUT=docs
+TMP=$(mktemp -d)
+trap 'rm -rf "$TMP"' EXIT
+RES=640x360
+CLOUD=fixtures/cloud.vdb
+
+$VS render "$CLOUD" -o "$OUT/cloud_sky.png" --res $RES --quiet
+
+# Single vs multiple scattering: albedo 0.99, as clouds are; the same camera and environment.
+$VS bake "$CLOUD" -o "$TMP/single.vtc" --albedo 0.99 --single-scatter --quiet
+$VS bake "$CLOUD" -o "$TMP/multiple.vtc" --albedo 0.99 --quiet
+$VS render "$TMP/single.vtc" -o "$OUT/cloud_single.png" --env fixtures/env/sky_sun.exr --res $RES --quiet
+$VS render "$TMP/multiple.vtc" -o "$OUT/cloud_multiple.png" --env fixtures/env/sky_sun.exr --res $RES --quiet
+
+# One transfer, two environments: relighting needs no new bake.
+$VS render "$TMP/multiple.vtc" -o "$OUT/cloud_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
+$VS render "$TMP/multiple.vtc" -o "$OUT/cloud_split.png" --env fixtures/env/split.exr --res $RES --quiet
+
+$VS render fixtures/torus.vdb -o "$OUT/torus_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
+echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png"
