@@ -144,7 +144,8 @@ pub fn stats_json(stats: &BakeStats) -> serde_json::Value {
     })
 }
 
-fn source_of(path: &Path, grid: &str) -> Result<Source> {
+/// Name, size and modification time of a bake's source file, as a cache records them.
+pub fn source_of(path: &Path, grid: &str) -> Result<Source> {
     let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
     let mtime = meta
         .modified()

@@ -287,6 +287,10 @@ pub struct RenderArgs {
     /// Write EXR as half floats.
     #[arg(long)]
     pub exr_half: bool,
+    /// Keep the bake of a .vdb input in this .vtc cache, and reuse it while the source file and
+    /// the bake options are unchanged.
+    #[arg(long, value_name = "PATH")]
+    pub cache: Option<PathBuf>,
     #[command(flatten)]
     pub bake: BakeArgs,
 }

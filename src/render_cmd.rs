@@ -60,14 +60,25 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     let clock = Instant::now();
     // A cache is recognised by its content, so a renamed file still works.
     let cached = crate::transfer::cache::is_cache(&args.input)?;
+    let mut keep: Option<(crate::transfer::cache::Source, &std::path::Path)> = None;
     let (density, baked) = if cached {
         let cache = crate::transfer::cache::read(&args.input)?;
         (cache.density, Some(cache.transfer))
     } else {
-        (
-            load_density(&args.input, bake_config.grid.as_deref())?.grid,
-            None,
-        )
+        let loaded = load_density(&args.input, bake_config.grid.as_deref())?;
+        match &args.cache {
+            Some(path) => {
+                let source = crate::bake::source_of(&args.input, &loaded.name)?;
+                match reusable(path, &source, &bake_config)? {
+                    Some(cache) => (cache.density, Some(cache.transfer)),
+                    None => {
+                        keep = Some((source, path.as_path()));
+                        (loaded.grid, None)
+                    }
+                }
+            }
+            None => (loaded.grid, None),
+        }
     };
     let read_seconds = clock.elapsed().as_secs_f64();
     let bands = baked
@@ -93,6 +104,16 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             None => return Ok(()),
         },
     };
+    if let Some((source, path)) = keep {
+        let header = crate::transfer::cache::header(
+            &density,
+            &transfer,
+            &bake_config.settings,
+            source,
+            bake_config.half,
+        );
+        crate::transfer::cache::write(path, &header, &density, &transfer)?;
+    }
     let bake_seconds = clock.elapsed().as_secs_f64();
 
     let camera = spec.camera(world_bounds(&density))?;
@@ -148,4 +169,24 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         println!("{line}");
     }
     Ok(())
+}
+
+/// The cache at `path`, when it exists and was baked from this very source with these settings;
+/// `None` means bake afresh (and overwrite it). A damaged cache is an error, not silently redone.
+fn reusable(
+    path: &std::path::Path,
+    source: &crate::transfer::cache::Source,
+    config: &crate::cli::BakeConfig,
+) -> Result<Option<crate::transfer::cache::Cache>> {
+    if !path.exists() {
+        return Ok(None);
+    }
+    let cache = crate::transfer::cache::read(path)?;
+    let h = &cache.header;
+    let same = &h.source == source
+        && h.settings().as_ref() == Some(&config.settings)
+        && h.sigma_t == config.medium.sigma_t
+        && h.albedo == config.medium.albedo
+        && (h.coefficients == "f16") == config.half;
+    Ok(same.then_some(cache))
 }

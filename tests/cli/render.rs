@@ -138,3 +138,44 @@ fn render_refuses_bad_flags_cleanly() {
     }
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
 }
+
+#[test]
+fn render_keeps_and_reuses_its_bake() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("small_cloud.vdb");
+    let run = |out: &str, albedo: &str| {
+        let mut args = vec![
+            "render",
+            input.to_str().unwrap(),
+            "-o",
+            out,
+            "--res",
+            "16x12",
+            "--cache",
+            "kept.vtc",
+            "--albedo",
+            albedo,
+        ];
+        args.extend(QUICK_BAKE);
+        let o = vscatter_in(dir.path(), &args);
+        assert!(o.status.success(), "{}", stderr(&o));
+    };
+    run("a.exr", "0.9");
+    let cache = dir.path().join("kept.vtc");
+    let first = std::fs::metadata(&cache).unwrap().modified().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    run("b.exr", "0.9");
+    // Reused: the cache is untouched and the image identical.
+    assert_eq!(
+        std::fs::metadata(&cache).unwrap().modified().unwrap(),
+        first
+    );
+    let (a, b) = (dir.path().join("a.exr"), dir.path().join("b.exr"));
+    assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    // Other bake options: baked afresh, the cache rewritten.
+    run("c.exr", "0.5");
+    assert_ne!(
+        std::fs::metadata(&cache).unwrap().modified().unwrap(),
+        first
+    );
+}

@@ -46,7 +46,8 @@ ensure_inputs() { tools/make_bench_inputs.sh "$BENCH_IN" >"$LOG/inputs.log" 2>&1
 
 load() { cut -d' ' -f1-3 /proc/loadavg; }
 
-# run_timed NAME CMD... : runs CMD under /usr/bin/time -v. Sets WALL (s), RSS_MB, RC, LOAD (at start),
+# run_timed NAME CMD... : runs CMD under /usr/bin/time -v. Sets WALL (s), RSS_MB, CPU (% of one core the
+# run got: 2 cores fully = 200%), RC, LOAD (at start),
 # and NAME.json = the last JSON line of stdout (the --stats line), if any. Never aborts the bench.
 run_timed() {
     local name="$1"; shift
@@ -57,6 +58,7 @@ run_timed() {
     set -e
     WALL=$(awk -F': ' '/Elapsed \(wall clock\)/{n=split($2,a,":"); s=0; for(i=1;i<=n;i++) s=s*60+a[i]; printf "%.2f", s}' "$LOG/$name.time")
     RSS_MB=$(awk -F': ' '/Maximum resident set size/{printf "%.1f", $2/1024}' "$LOG/$name.time")
+    CPU=$(awk -F': ' '/Percent of CPU/{print $2}' "$LOG/$name.time")
     grep '^{' "$LOG/$name.out" | tail -1 >"$LOG/$name.json" || true
     if [ "$RC" != 0 ]; then
         echo "FAILED ($name, exit $RC): $(grep -v '^\s*Command' "$LOG/$name.err" | grep -v '^$' | tail -1)" >&2
