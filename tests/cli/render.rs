@@ -179,3 +179,85 @@ fn render_keeps_and_reuses_its_bake() {
         first
     );
 }
+
+/// Every pixel's RGB of an EXR written by vscatter.
+fn read_rgb(path: &std::path::Path) -> Vec<[f32; 3]> {
+    let img = exr::prelude::read_first_rgba_layer_from_file(
+        path,
+        |size, _| (size.width(), vec![[0f32; 3]; size.width() * size.height()]),
+        |(w, px): &mut (usize, Vec<[f32; 3]>), pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+            px[pos.y() * *w + pos.x()] = [r, g, b];
+        },
+    )
+    .unwrap();
+    img.layer_data.channel_data.pixels.1
+}
+
+#[test]
+fn white_furnace_through_the_whole_chain() {
+    // Albedo 1 under a constant environment 1: every pixel is 1, however the cloud scatters.
+    // σt = 0.08 keeps one transfer voxel (K = 6) under 0.5 optical depth.
+    let dir = tempfile::tempdir().unwrap();
+    let (cloud, env) = (fixture("cloud.vdb"), fixture("env/constant.exr"));
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            cloud.to_str().unwrap(),
+            "-o",
+            "f.exr",
+            "--env",
+            env.to_str().unwrap(),
+            "--albedo",
+            "1",
+            "--sigma-t",
+            "0.08",
+            "--res",
+            "96x64",
+            "--samples",
+            "256",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let worst = read_rgb(&dir.path().join("f.exr"))
+        .iter()
+        .flat_map(|p| p.iter().map(|v| (v - 1.0).abs()))
+        .fold(0f32, f32::max);
+    assert!(worst < 0.03, "furnace pixel off by {worst}");
+}
+
+#[test]
+fn zero_density_shows_the_environment() {
+    // The empty fixture under the split environment: sky above the horizon, ground below,
+    // exactly as the environment lookup gives them (the image holds the lookup itself).
+    let dir = tempfile::tempdir().unwrap();
+    let (empty, env) = (fixture("empty.vdb"), fixture("env/split.exr"));
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            empty.to_str().unwrap(),
+            "-o",
+            "e.exr",
+            "--env",
+            env.to_str().unwrap(),
+            "--res",
+            "32x24",
+            "--camera-pos",
+            "0,0,5",
+            "--lookat",
+            "0,0,0",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let px = read_rgb(&dir.path().join("e.exr"));
+    // Looking along −Z at the horizon: the top rows see (1, 0.95, 0.9), the bottom (0.2, 0.1, 0.05).
+    let top = px[32 + 16];
+    let bottom = px[22 * 32 + 16];
+    for (got, want) in top.iter().zip([1.0, 0.95, 0.9]) {
+        assert!((got - want).abs() < 1e-3, "top {top:?}");
+    }
+    for (got, want) in bottom.iter().zip([0.2, 0.1, 0.05]) {
+        assert!((got - want).abs() < 1e-3, "bottom {bottom:?}");
+    }
+}
