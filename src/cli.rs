@@ -195,6 +195,16 @@ pub struct EnvArgs {
     /// Windowing of the coefficients against ringing (thesis eq. 6.1).
     #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
     pub window: crate::sh::Window,
+    #[command(flatten)]
+    pub png: PngArgs,
+    /// Also write the input map itself (after clamping bad pixels), for side-by-side figures.
+    #[arg(long, value_name = "PATH")]
+    pub original: Option<PathBuf>,
+}
+
+/// Flags of PNG output, shared by every command that writes images.
+#[derive(Debug, Clone, Args)]
+pub struct PngArgs {
     /// Exposure in stops for PNG output.
     #[arg(
         long,
@@ -203,9 +213,6 @@ pub struct EnvArgs {
         allow_negative_numbers = true
     )]
     pub exposure: f32,
-    /// Also write the input map itself (after clamping bad pixels), for side-by-side figures.
-    #[arg(long, value_name = "PATH")]
-    pub original: Option<PathBuf>,
 }
 
 impl GlobalArgs {
@@ -273,14 +280,8 @@ pub struct RenderArgs {
     /// Samples per pixel (box filter).
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub spp: u32,
-    /// Exposure in stops for PNG output.
-    #[arg(
-        long,
-        value_name = "EV",
-        default_value_t = 0.0,
-        allow_negative_numbers = true
-    )]
-    pub exposure: f32,
+    #[command(flatten)]
+    pub png: PngArgs,
     /// No environment behind the volume: transparent where it is thin (premultiplied alpha).
     #[arg(long)]
     pub no_background: bool,

@@ -28,7 +28,7 @@ pub fn run(args: &EnvArgs) -> Result<()> {
     let error = env.relative_l2_error(&recon);
 
     let options = WriteOptions {
-        exposure: args.exposure,
+        exposure: args.png.exposure,
         ..WriteOptions::default()
     };
     ImageBuf::from_rgb(w, h, &recon).write(&args.output, &options)?;

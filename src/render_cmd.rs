@@ -42,7 +42,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             args.env_scale
         )));
     }
-    if !args.env_rotate.is_finite() || !args.exposure.is_finite() {
+    if !args.env_rotate.is_finite() || !args.png.exposure.is_finite() {
         return Err(Error::usage(
             "--env-rotate and --exposure must be finite numbers",
         ));
@@ -137,7 +137,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
 
     let clock = Instant::now();
     let options = WriteOptions {
-        exposure: args.exposure,
+        exposure: args.png.exposure,
         precision: if args.exr_half {
             ExrPrecision::Half
         } else {

@@ -47,7 +47,7 @@ ensure_inputs() { tools/make_bench_inputs.sh "$BENCH_IN" >"$LOG/inputs.log" 2>&1
 load() { cut -d' ' -f1-3 /proc/loadavg; }
 
 # run_timed NAME CMD... : runs CMD under /usr/bin/time -v. Sets WALL (s), RSS_MB, CPU (% of one core the
-# run got: 2 cores fully = 200%), RC, LOAD (at start),
+# run got: 2 cores fully = 200%), CPU_S (user+sys seconds), RC, LOAD (at start),
 # and NAME.json = the last JSON line of stdout (the --stats line), if any. Never aborts the bench.
 run_timed() {
     local name="$1"; shift
@@ -59,6 +59,7 @@ run_timed() {
     WALL=$(awk -F': ' '/Elapsed \(wall clock\)/{n=split($2,a,":"); s=0; for(i=1;i<=n;i++) s=s*60+a[i]; printf "%.2f", s}' "$LOG/$name.time")
     RSS_MB=$(awk -F': ' '/Maximum resident set size/{printf "%.1f", $2/1024}' "$LOG/$name.time")
     CPU=$(awk -F': ' '/Percent of CPU/{print $2}' "$LOG/$name.time")
+    CPU_S=$(awk -F': ' '/User time|System time/{s+=$2} END{printf "%.2f", s}' "$LOG/$name.time")
     grep '^{' "$LOG/$name.out" | tail -1 >"$LOG/$name.json" || true
     if [ "$RC" != 0 ]; then
         echo "FAILED ($name, exit $RC): $(grep -v '^\s*Command' "$LOG/$name.err" | grep -v '^$' | tail -1)" >&2
