@@ -37,7 +37,9 @@ build_vscatter() {
         echo "bench.sh: build failed (concurrent edit?), retrying in 60 s" >&2
         sleep 60
     done
-    cp target/release/vscatter "$BENCH_OUT/vscatter"
+    # copy + rename: a bench run still using the previous copy keeps its file ("Text file busy" otherwise)
+    cp target/release/vscatter "$BENCH_OUT/vscatter.tmp.$$"
+    mv -f "$BENCH_OUT/vscatter.tmp.$$" "$BENCH_OUT/vscatter"
     VS="$BENCH_OUT/vscatter"
     echo "vscatter: $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- src Cargo.toml Cargo.lock || echo '+dirty') built $(date -u +%FT%TZ); $(nproc) cores"
 }
