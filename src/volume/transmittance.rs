@@ -1,11 +1,15 @@
 //! Optical depth along world-space rays through a sparse grid: fixed steps on a lattice of
-//! positions measured from the ray origin, with empty 8³ blocks jumped over exactly — a jump only
-//! ever skips samples whose density is zero, so skipping changes no result.
+//! positions measured from the ray origin, evaluated only inside the spans of occupied blocks that
+//! the hierarchical DDA ([`Occupancy`]) yields — the same empty-space skipping as the renderer's.
+//! Samples outside spans have zero density, so skipping changes no result.
 
 use glam::Vec3;
 
+use std::ops::ControlFlow;
+
+use super::dda::Occupancy;
 use super::sampler::BlockSampler;
-use super::sparse::{Block, SparseGrid, LEAF_DIM, LEAF_LOG2};
+use super::sparse::SparseGrid;
 
 /// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
 /// under 1 % of the optical depth at one sample per voxel, and half a voxel halves that again.
@@ -24,7 +28,8 @@ pub struct OpticalDepth<'a> {
     /// Index-space box outside which the density is zero (active bbox grown by one voxel).
     lo: Vec3,
     hi: Vec3,
-    skip_empty: bool,
+    /// Occupied spans for skipping; `None` marches the whole box (to prove skipping is exact).
+    occupancy: Option<Occupancy>,
 }
 
 impl<'a> OpticalDepth<'a> {
@@ -41,7 +46,7 @@ impl<'a> OpticalDepth<'a> {
             inv_scale: scale.recip(),
             lo,
             hi,
-            skip_empty,
+            occupancy: skip_empty.then(|| Occupancy::build(grid)),
         }
     }
 
@@ -78,71 +83,41 @@ impl<'a> OpticalDepth<'a> {
         if end <= 0.0 {
             return 0.0;
         }
-        let steps = (end / self.step).ceil() as u32;
-        let mut acc = BlockSampler::new(self.grid);
+        let step = self.step;
+        let steps = (end / step).ceil() as u32;
+        let mut sampler = BlockSampler::new(self.grid);
         let mut tau = 0.0f32;
-        let mut k = 0u32;
-        while k < steps {
-            let s = (k as f32 + 0.5) * self.step;
-            let p = origin + v * s;
-            if self.skip_empty {
-                if let Some(next) = self.skip_from(&mut acc, p, origin, v, k) {
-                    k = next;
-                    continue;
+        // Samples whose positions fall in [t0, t1): spans are half-open, so none is taken twice.
+        let mut march = |t0: f64, t1: f64| {
+            let first = ((t0 / step as f64) - 0.5).ceil().max(0.0) as u32;
+            let last = (((t1 / step as f64) - 0.5).ceil().max(0.0) as u32).min(steps);
+            for k in first..last {
+                let p = origin + v * ((k as f32 + 0.5) * step);
+                let len = if k + 1 == steps {
+                    end - k as f32 * step
+                } else {
+                    step
+                };
+                tau += self.sigma_t * sampler.sample(p) * len;
+                if tau > cutoff {
+                    return ControlFlow::Break(());
                 }
             }
-            let len = if k + 1 == steps {
-                end - k as f32 * self.step
-            } else {
-                self.step
-            };
-            tau += self.sigma_t * acc.sample(p) * len;
-            if tau > cutoff {
-                break;
+            ControlFlow::Continue(())
+        };
+        // The last, partial step's sample lies past `end`: walk to the end of that whole step.
+        let reach = steps as f64 * step as f64;
+        match &self.occupancy {
+            Some(occupancy) => {
+                occupancy.visit_spans(origin.as_dvec3(), v.as_dvec3(), 0.0, reach, |span| {
+                    march(span.t0, span.t1)
+                })
             }
-            k += 1;
+            None => {
+                let _ = march(0.0, reach);
+            }
         }
         tau
-    }
-
-    /// If sample `k` at `p` lies where the density is certainly zero — inside the part of an empty
-    /// 8³ block whose trilinear cells read only that block — the index of the first sample past
-    /// that part; otherwise `None`.
-    fn skip_from(
-        &self,
-        acc: &mut BlockSampler,
-        p: Vec3,
-        origin: Vec3,
-        v: Vec3,
-        k: u32,
-    ) -> Option<u32> {
-        let cell = p.floor().as_ivec3();
-        let key = cell >> LEAF_LOG2 as i32;
-        let local = cell & (LEAF_DIM - 1);
-        if local.max_element() >= LEAF_DIM - 1 {
-            return None;
-        }
-        let empty = match acc.block_at(key) {
-            Block::Leaf(leaf) => leaf.max <= 0.0,
-            Block::Constant(c) => c <= 0.0,
-        };
-        if !empty {
-            return None;
-        }
-        // Exit of the box [8B, 8B + 7)³ in which every trilinear corner lies in block B.
-        let lo = (key * LEAF_DIM).as_vec3();
-        let hi = lo + (LEAF_DIM - 1) as f32;
-        let mut exit = f32::INFINITY;
-        for a in 0..3 {
-            if v[a] > 0.0 {
-                exit = exit.min((hi[a] - origin[a]) / v[a]);
-            } else if v[a] < 0.0 {
-                exit = exit.min((lo[a] - origin[a]) / v[a]);
-            }
-        }
-        // First sample at or past the exit; always advance at least one sample.
-        let next = ((exit / self.step) - 0.5).ceil().max(k as f32 + 1.0);
-        Some(next.min(u32::MAX as f32) as u32)
     }
 }
 
