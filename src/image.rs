@@ -125,8 +125,9 @@ impl ImageBuf {
         let layer = Layer::new(
             (self.width, self.height),
             LayerAttributes::default(),
-            // ZIP: lossless and the usual choice for rendered images; half the size of raw floats.
-            Encoding::SMALL_LOSSLESS,
+            // RLE: lossless and several times faster to write than ZIP on 1080p frames with eleven
+            // float channels (ZIP took 0.6–1.1 s, as long as the march); compositors read both.
+            Encoding::FAST_LOSSLESS,
             AnyChannels::sort(channels),
         );
         let image = Image::from_layer(layer);

@@ -54,7 +54,6 @@ use rayon::prelude::*;
 use super::grid::TransferLayout;
 use super::Medium;
 use crate::volume::sampler::BlockSampler;
-use crate::volume::transmittance::STEP_VOXELS;
 use crate::volume::SparseGrid;
 
 /// Stop when the estimated energy still to come is below this fraction of the total (issue 4).
@@ -264,8 +263,9 @@ struct Segment {
     track_emit: f32,
 }
 
-/// Sub-steps per segment: the midpoint rule on the piecewise-trilinear density, as in T_ri.
-const SEGMENT_STEP_VOXELS: f32 = STEP_VOXELS;
+/// Sub-step of a segment march, in voxels: segments are short (K/2 to K·√3 voxels) and marched
+/// once per link, so two samples per voxel cost little and resolve a cell's density profile.
+const SEGMENT_STEP_VOXELS: f32 = 0.5;
 
 /// Marches the segment from index point `a` to `b` (world length `length`). Emission is spread
 /// along it in proportion to the density, as collisions are; ε and the emitted track are the

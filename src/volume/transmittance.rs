@@ -12,8 +12,9 @@ use super::sampler::BlockSampler;
 use super::sparse::SparseGrid;
 
 /// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
-/// under 1 % of the optical depth at one sample per voxel, and half a voxel halves that again.
-pub const STEP_VOXELS: f32 = 0.5;
+/// under 1 % of the optical depth at one sample per voxel. T_ri marches hundreds of millions of
+/// samples per bake, so one per voxel (not the renderer's two) halves the bake at no visible cost.
+pub const STEP_VOXELS: f32 = 1.0;
 /// Rays stop once transmittance falls below this: what is left cannot change a transfer value by
 /// more than 1e-4 of full visibility.
 pub const MIN_TRANSMITTANCE: f32 = 1e-4;
