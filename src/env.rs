@@ -486,11 +486,14 @@ mod tests {
         assert!(at_sun[0] > 500.0 * zenith[0]);
         assert!(zenith[2] > zenith[0], "zenith is blue");
         assert!(ground[2] < zenith[2]);
-        assert!(env
-            .pixels()
+        assert!(all_finite_non_negative(&env));
+    }
+
+    fn all_finite_non_negative(env: &Environment) -> bool {
+        env.pixels()
             .iter()
             .flatten()
-            .all(|v| v.is_finite() && *v >= 0.0));
+            .all(|v| v.is_finite() && *v >= 0.0)
     }
 
     #[test]
@@ -519,11 +522,7 @@ mod tests {
             "studio.hdr",
         ] {
             let env = Environment::load(&fixture(name)).unwrap();
-            assert!(env
-                .pixels()
-                .iter()
-                .flatten()
-                .all(|v| v.is_finite() && *v >= 0.0));
+            assert!(all_finite_non_negative(&env));
         }
     }
 
