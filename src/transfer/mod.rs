@@ -124,6 +124,10 @@ pub fn bake(
     (transfer, stats)
 }
 
+/// Resident memory of the process before a bake allocates anything (binary, thread stacks,
+/// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
+const PROCESS_BASELINE: u64 = 24 << 20;
+
 /// Peak memory of a bake, estimated before anything big is allocated.
 #[derive(Debug, Clone, Copy)]
 pub struct MemoryEstimate {
@@ -148,18 +152,19 @@ impl MemoryEstimate {
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         // Single: batch results before they are scattered into T_ri (one more copy of T_ri).
         let single = one + sets;
-        // Lattice: per-chunk results (one more copy), link tables, sweep orders, chunk buffers.
+        // Lattice: per-chunk results (one more copy); per link a target and four segment values
+        // (20 bytes) and a sweep-order entry (4); per voxel the boost; four chunk buffers a thread.
         let d = settings.lattice.directions() as u64;
         let lattice = if settings.single_scatter {
             0
         } else {
-            one + n * d * 12 + n * d * 4 + threads as u64 * 4 * n * 8 * 4
+            one + n * d * 24 + n * 4 + threads as u64 * 4 * n * 8 * 4
         };
         MemoryEstimate {
             density: density_bytes as u64,
             layout: layout_bytes as u64,
             transfer: 2 * one,
-            working: single.max(lattice),
+            working: single.max(lattice) + PROCESS_BASELINE,
         }
     }
 
