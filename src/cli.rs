@@ -248,7 +248,12 @@ pub struct RenderArgs {
     #[arg(long, value_name = "ENV", default_value = crate::env::SKY_SPEC)]
     pub env: String,
     /// Multiplies the environment's radiance.
-    #[arg(long, value_name = "F", default_value_t = 1.0)]
+    #[arg(
+        long,
+        value_name = "F",
+        default_value_t = 1.0,
+        allow_negative_numbers = true
+    )]
     pub env_scale: f32,
     /// Turns the environment about +Y, degrees.
     #[arg(

@@ -16,9 +16,15 @@ fn main() -> ExitCode {
             // Usage errors: one line, like every other error (clap's tips and usage block follow
             // its first line; `--help` has them).
             let text = e.render().to_string();
-            let first = text.lines().next().unwrap_or("invalid command line");
+            let mut lines = text.lines().map(str::trim).filter(|l| !l.is_empty());
+            let first = lines.next().unwrap_or("invalid command line");
             let first = first.strip_prefix("error: ").unwrap_or(first);
-            eprintln!("vscatter: error: {first} (see `vscatter --help`)");
+            // "required arguments were not provided:" lists them on the lines that follow.
+            let detail = match first.ends_with(':') {
+                true => format!(" {}", lines.next().unwrap_or_default()),
+                false => String::new(),
+            };
+            eprintln!("vscatter: error: {first}{detail} (see `vscatter --help`)");
             return ExitCode::from(2);
         }
     };
