@@ -170,7 +170,7 @@ impl BakeArgs {
 
 #[derive(Debug, Args)]
 pub struct InfoArgs {
-    /// The file to describe (.vdb).
+    /// The file to describe: a VDB file or a .vtc transfer cache.
     pub file: PathBuf,
     /// Print JSON instead of text.
     #[arg(long)]

@@ -358,11 +358,6 @@ impl SparseGrid {
         let c = std::array::from_fn(|n| self.value(i0 + corner(n)));
         trilinear(c, p - base)
     }
-
-    /// Trilinear density at a world-space point.
-    pub fn sample_world(&self, world: DVec3) -> f32 {
-        self.sample_index(self.transform.world_to_index(world).as_vec3())
-    }
 }
 
 /// Offset of leaf slot `slot` from the leaf origin.
@@ -489,17 +484,6 @@ mod tests {
         assert!((w - DVec3::new(1.5, -2.5, 1.8)).length() < 1e-12);
         assert!((t.world_to_index(w) - DVec3::new(10.0, 20.0, -4.0)).length() < 1e-9);
         assert_eq!(t.voxel_size(), DVec3::new(0.05, 0.1, 0.05));
-    }
-
-    #[test]
-    fn world_sampling_uses_the_transform() {
-        let mut g = cube();
-        g.transform = Transform {
-            scale: DVec3::splat(0.5),
-            translation: DVec3::new(10.0, 0.0, 0.0),
-        };
-        // World (10.25, 0.25, 0.25) is index (0.5, 0.5, 0.5).
-        assert_eq!(g.sample_world(DVec3::new(10.25, 0.25, 0.25)), 3.5);
     }
 
     #[test]

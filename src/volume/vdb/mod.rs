@@ -274,10 +274,6 @@ impl VdbFile {
         })();
         result.map_err(|e| Error::format(&self.path, format!("grid {:?}: {}", g.name, e.0)))
     }
-
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
 }
 
 fn value_format(g: &GridInfo) -> std::result::Result<ValueFormat, VdbError> {
