@@ -282,9 +282,16 @@ pub struct RenderArgs {
     /// Horizontal field of view, degrees.
     #[arg(long, value_name = "DEG", default_value_t = 45.0)]
     pub fov: f32,
-    /// Samples per pixel (box filter).
-    #[arg(long, value_name = "N", default_value_t = 1)]
-    pub spp: u32,
+    /// Samples per pixel (box filter) [default: 1 for transfer, 64 for pathtrace].
+    #[arg(long, value_name = "N")]
+    pub spp: Option<u32>,
+    /// How to compute the light: the baked transfer (fast, approximate) or a reference path tracer
+    /// (unbiased, slow: the ground truth the transfer is measured against).
+    #[arg(long, value_enum, default_value_t = Method::Transfer)]
+    pub method: Method,
+    /// Path tracer only: most scattering events per path (1 = single scattering) [default: no limit].
+    #[arg(long, value_name = "N")]
+    pub max_bounces: Option<u32>,
     #[command(flatten)]
     pub png: PngArgs,
     /// No environment behind the volume: transparent where it is thin (premultiplied alpha).
@@ -299,6 +306,15 @@ pub struct RenderArgs {
     pub cache: Option<PathBuf>,
     #[command(flatten)]
     pub bake: BakeArgs,
+}
+
+/// `render --method`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Method {
+    /// Relight the baked SH transfer and ray-march it.
+    Transfer,
+    /// Monte Carlo volumetric path tracing of the same model.
+    Pathtrace,
 }
 
 /// `WxH`, both at least 1 (the camera bounds the area).

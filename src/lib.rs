@@ -9,6 +9,7 @@ pub mod env_cmd;
 pub mod error;
 pub mod image;
 pub mod info;
+pub mod pathtrace;
 pub mod progress;
 pub mod render;
 pub mod render_cmd;

@@ -1,21 +1,31 @@
-//! `vscatter render`: volume in, image out. Reads a `.vtc` cache (density and transfer) or a VDB
-//! whose transfer it bakes first, projects the environment onto SH, relights, marches, and writes
-//! the EXR (RGBA plus direct, indirect and depth layers) or PNG atomically.
+//! `vscatter render`: volume in, image out. With `--method transfer` (the default) it reads a
+//! `.vtc` cache (density and transfer) or a VDB whose transfer it bakes first, projects the
+//! environment onto SH, relights and marches; with `--method pathtrace` it path-traces the density
+//! under the environment itself. Either way it writes the EXR (RGBA plus direct, indirect and depth
+//! layers) or PNG atomically.
 
 use std::path::Path;
 use std::time::Instant;
 
 use glam::Vec3;
 
-use crate::cli::{GlobalArgs, RenderArgs};
+use crate::cli::{GlobalArgs, Method, RenderArgs};
 use crate::env::Environment;
 use crate::error::{Error, Result};
 use crate::image::{ExrPrecision, WriteOptions};
-use crate::render::{render_volume, world_bounds, CameraSpec, MarchSettings};
+use crate::pathtrace::{EnvLight, Medium3d, PathStats, PathTracer};
+use crate::render::{render_volume, world_bounds, Background, CameraSpec, Frame, MarchSettings};
+use crate::volume::dda::Occupancy;
 use crate::volume::load_density;
 
 /// Most samples per pixel accepted: beyond this a box filter has long converged.
 const MAX_SPP: u32 = 65536;
+/// Default samples per pixel of the transfer method: its march is smooth, one ray per pixel is a
+/// clean image; more only antialias edges.
+const DEFAULT_SPP: u32 = 1;
+/// Default samples per pixel of the path tracer: enough for a recognisable preview of a cloud
+/// (a few percent noise on its bright side); references take thousands.
+const DEFAULT_PATHTRACE_SPP: u32 = 64;
 
 pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     // Every flag is checked before any work, so a typo costs nothing.
@@ -30,12 +40,16 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         )));
     }
     let bake_config = args.bake.validate()?;
-    if !(1..=MAX_SPP).contains(&args.spp) {
+    let spp = args.spp.unwrap_or(match args.method {
+        Method::Transfer => DEFAULT_SPP,
+        Method::Pathtrace => DEFAULT_PATHTRACE_SPP,
+    });
+    if !(1..=MAX_SPP).contains(&spp) {
         return Err(Error::usage(format!(
-            "--spp {}: must lie in 1..={MAX_SPP}",
-            args.spp
+            "--spp {spp}: must lie in 1..={MAX_SPP}"
         )));
     }
+    check_method_flags(args)?;
     if !(args.env_scale.is_finite() && args.env_scale >= 0.0) {
         return Err(Error::usage(format!(
             "--env-scale {}: must be a finite number ≥ 0",
@@ -57,6 +71,9 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     };
     // Validates resolution, fov and pose before the bake (a framing camera of a unit box).
     spec.camera(None)?;
+    if args.method == Method::Pathtrace {
+        return pathtrace(args, global, &bake_config, &spec, spp);
+    }
     let clock = Instant::now();
     // A cache is recognised by its content, so a renamed file still works.
     let cached = crate::transfer::cache::is_cache(&args.input)?;
@@ -121,35 +138,21 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         env.lookup_rotated([d.x as f64, d.y as f64, d.z as f64], angle)
             .map(|v| v * scale)
     };
-    let background: Option<crate::render::Background> = if args.no_background {
-        None
-    } else {
-        Some(&lookup)
-    };
+    let background: Option<Background> = (!args.no_background).then_some(&lookup);
     let settings = MarchSettings {
-        spp: args.spp,
+        spp,
         ..MarchSettings::default()
     };
     let bar = crate::progress::bar(0, "render", global.quiet);
     let (frame, march_stats, timings) = render_volume(
         &density, &transfer, &coeffs, background, &camera, &settings, &bar,
     );
-
-    let clock = Instant::now();
-    let options = WriteOptions {
-        exposure: args.png.exposure,
-        precision: if args.exr_half {
-            ExrPrecision::Half
-        } else {
-            ExrPrecision::Float
-        },
-    };
-    frame.into_image().write(&args.output, &options)?;
-    let write_seconds = clock.elapsed().as_secs_f64();
+    let write_seconds = write_frame(frame, args)?;
 
     if global.stats {
         let line = serde_json::json!({
             "command": "render",
+            "method": "transfer",
             "input": args.input.display().to_string(),
             "read_seconds": read_seconds,
             "env_seconds": env_seconds,
@@ -189,4 +192,110 @@ fn reusable(
         && h.albedo == config.medium.albedo
         && (h.coefficients == "f16") == config.half;
     Ok(same.then_some(cache))
+}
+
+/// Refuses flags that mean nothing to the chosen method, naming the one that does the job.
+fn check_method_flags(args: &RenderArgs) -> Result<()> {
+    match args.method {
+        Method::Transfer if args.max_bounces.is_some() => Err(Error::usage(
+            "--max-bounces applies to --method pathtrace; the transfer's single scattering is --single-scatter",
+        )),
+        Method::Pathtrace if args.bake.single_scatter => Err(Error::usage(
+            "--single-scatter applies to the transfer; the path tracer's single scattering is --max-bounces 1",
+        )),
+        Method::Pathtrace if args.cache.is_some() => Err(Error::usage(
+            "--cache keeps a bake, and --method pathtrace bakes nothing",
+        )),
+        Method::Pathtrace if args.max_bounces == Some(0) => Err(Error::usage(
+            "--max-bounces 0: must be at least 1 (1 = single scattering)",
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Writes `frame` to `args.output` (EXR or PNG by extension); returns the seconds it took.
+fn write_frame(frame: Frame, args: &RenderArgs) -> Result<f64> {
+    let clock = Instant::now();
+    let options = WriteOptions {
+        exposure: args.png.exposure,
+        precision: if args.exr_half {
+            ExrPrecision::Half
+        } else {
+            ExrPrecision::Float
+        },
+    };
+    frame.into_image().write(&args.output, &options)?;
+    Ok(clock.elapsed().as_secs_f64())
+}
+
+/// `--method pathtrace`: the density (of a VDB, or of a cache with its medium) path-traced under
+/// the full-resolution environment.
+fn pathtrace(
+    args: &RenderArgs,
+    global: &GlobalArgs,
+    bake_config: &crate::cli::BakeConfig,
+    spec: &CameraSpec,
+    spp: u32,
+) -> Result<()> {
+    let clock = Instant::now();
+    let (density, medium) = if crate::transfer::cache::is_cache(&args.input)? {
+        let cache = crate::transfer::cache::read(&args.input)?;
+        (cache.density, cache.transfer.medium)
+    } else {
+        let loaded = load_density(&args.input, bake_config.grid.as_deref())?;
+        (loaded.grid, bake_config.medium)
+    };
+    let read_seconds = clock.elapsed().as_secs_f64();
+
+    let clock = Instant::now();
+    let env = Environment::load(&args.env)?;
+    let light = EnvLight::new(&env, args.env_rotate.to_radians(), args.env_scale);
+    let occupancy = Occupancy::build(&density);
+    let setup_seconds = clock.elapsed().as_secs_f64();
+
+    let camera = spec.camera(world_bounds(&density))?;
+    let tracer = PathTracer {
+        medium: Medium3d {
+            density: &density,
+            occupancy: &occupancy,
+            sigma_t: medium.sigma_t,
+        },
+        albedo: medium.albedo,
+        light: &light,
+        max_bounces: args.max_bounces.unwrap_or(u32::MAX),
+        seed: args.bake.seed,
+    };
+    let lookup = |d: Vec3| light.radiance(d);
+    let background: Option<Background> = (!args.no_background).then_some(&lookup);
+    let bar = crate::progress::bar(0, "path trace", global.quiet);
+    let clock = Instant::now();
+    let (frame, stats) = crate::render::film::render_frame(
+        &camera,
+        spp,
+        background,
+        &bar,
+        |sample, stats: &mut PathStats| tracer.trace(sample, stats),
+    );
+    let trace_seconds = clock.elapsed().as_secs_f64();
+    let write_seconds = write_frame(frame, args)?;
+
+    if global.stats {
+        let line = serde_json::json!({
+            "command": "render",
+            "method": "pathtrace",
+            "input": args.input.display().to_string(),
+            "read_seconds": read_seconds,
+            "env_seconds": setup_seconds,
+            "trace_seconds": trace_seconds,
+            "write_seconds": write_seconds,
+            "spp": spp,
+            "paths": stats.paths,
+            "scatterings": stats.scatterings,
+            "density_lookups": stats.lookups,
+            "active_voxels": density.active_voxels(),
+            "peak_memory_bytes": crate::bake::peak_memory(),
+        });
+        println!("{line}");
+    }
+    Ok(())
 }

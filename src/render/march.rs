@@ -22,9 +22,9 @@ use std::ops::ControlFlow;
 use glam::{DVec3, IVec3, Vec3};
 use hashbrown::HashMap;
 use indicatif::ProgressBar;
-use rayon::prelude::*;
 
-use crate::render::camera::{hash_unit, pixel_offset, Camera, STREAM_STEP};
+use crate::render::camera::{hash_unit, Camera, STREAM_STEP};
+use crate::render::film::{self, Background, Frame, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
 use crate::volume::dda::{clip_to_box, Occupancy};
@@ -39,9 +39,6 @@ pub const TERMINATION_TRANSMITTANCE: f32 = 1e-3;
 /// Default step length in voxels (of the smallest voxel edge): two samples per voxel resolve the
 /// trilinear density without visible banding, at half the cost of four.
 pub const DEFAULT_STEP_VOXELS: f32 = 0.5;
-/// Edge of the square image tiles handed to rayon: big enough to amortise scheduling, small enough
-/// that both cores stay busy until the last tile even when the volume covers a corner of the frame.
-const TILE: u32 = 32;
 
 /// The in-scattered radiance Ls at a point of the medium, direct and indirect parts.
 pub trait InScatter: Sync {
@@ -122,9 +119,6 @@ impl InScatter for TransferRadiance<'_> {
     }
 }
 
-/// The environment seen behind the volume: radiance arriving along a world direction.
-pub type Background<'a> = &'a (dyn Fn(Vec3) -> [f32; 3] + Sync);
-
 /// Everything a ray meets.
 pub struct Scene<'a, S: InScatter> {
     pub density: &'a SparseGrid,
@@ -199,32 +193,6 @@ impl std::ops::AddAssign for MarchStats {
     }
 }
 
-/// What one ray returns.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RayResult {
-    /// Volume radiance from unscattered environment light (T_ri).
-    pub direct: [f32; 3],
-    /// Volume radiance from multiply scattered light (F_ms).
-    pub indirect: [f32; 3],
-    /// Tr(0, ∞).
-    pub transmittance: f32,
-    /// Σ t·w / Σ w over the steps, w = Tr·(1 − e^{−σt Δ}) the step's opacity; 0 when nothing is hit.
-    pub depth: f32,
-}
-
-/// A rendered frame: row-major, row 0 at the top.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Frame {
-    pub width: u32,
-    pub height: u32,
-    /// Linear RGB (volume + Tr·background) and alpha (1 with a background, else 1 − Tr).
-    pub rgba: Vec<[f32; 4]>,
-    pub direct: Vec<[f32; 3]>,
-    pub indirect: Vec<[f32; 3]>,
-    /// Opacity-weighted mean distance from the camera, world units; 0 where the ray hits nothing.
-    pub depth: Vec<f32>,
-}
-
 /// Marches one world-space ray (`dir` unit length); `jitter` ∈ [0, 1) shifts the step lattice.
 pub fn march_ray<S: InScatter>(
     scene: &Scene<S>,
@@ -234,12 +202,7 @@ pub fn march_ray<S: InScatter>(
     settings: &MarchSettings,
     stats: &mut MarchStats,
 ) -> RayResult {
-    let mut out = RayResult {
-        direct: [0.0; 3],
-        indirect: [0.0; 3],
-        transmittance: 1.0,
-        depth: 0.0,
-    };
+    let mut out = RayResult::CLEAR;
     stats.rays += 1;
     let Some((lo, hi)) = scene.support else {
         return out;
@@ -336,105 +299,23 @@ pub fn render<S: InScatter>(
     render_with_progress(scene, camera, settings, &ProgressBar::hidden())
 }
 
-/// [`render`], advancing `progress` by one per finished image tile (its length is set here).
+/// [`render`], advancing `progress` by one per finished image tile.
 pub fn render_with_progress<S: InScatter>(
     scene: &Scene<S>,
     camera: &Camera,
     settings: &MarchSettings,
     progress: &ProgressBar,
 ) -> (Frame, MarchStats) {
-    let (w, h) = (camera.width, camera.height);
-    let spp = settings.spp.max(1);
-    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE))
-        .flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE)))
-        .collect();
-    progress.set_length(tiles.len() as u64);
-    let rendered: Vec<(Vec<Pixel>, MarchStats)> = tiles
-        .par_iter()
-        .map(|&(x0, y0)| {
-            let mut stats = MarchStats::default();
-            let mut pixels = Vec::with_capacity((TILE * TILE) as usize);
-            for y in y0..(y0 + TILE).min(h) {
-                for x in x0..(x0 + TILE).min(w) {
-                    pixels.push(render_pixel(scene, camera, settings, spp, x, y, &mut stats));
-                }
-            }
-            progress.inc(1);
-            (pixels, stats)
-        })
-        .collect();
-    progress.finish_and_clear();
-    let n = (w as usize) * (h as usize);
-    let mut frame = Frame {
-        width: w,
-        height: h,
-        rgba: vec![[0.0; 4]; n],
-        direct: vec![[0.0; 3]; n],
-        indirect: vec![[0.0; 3]; n],
-        depth: vec![0.0; n],
-    };
-    let mut stats = MarchStats::default();
-    for (&(x0, y0), (pixels, s)) in tiles.iter().zip(rendered) {
-        stats += s;
-        let tw = (x0 + TILE).min(w) - x0;
-        for (i, p) in pixels.into_iter().enumerate() {
-            let (x, y) = (x0 + i as u32 % tw, y0 + i as u32 / tw);
-            let at = y as usize * w as usize + x as usize;
-            frame.rgba[at] = p.rgba;
-            frame.direct[at] = p.direct;
-            frame.indirect[at] = p.indirect;
-            frame.depth[at] = p.depth;
-        }
-    }
-    (frame, stats)
-}
-
-/// One finished pixel.
-struct Pixel {
-    rgba: [f32; 4],
-    direct: [f32; 3],
-    indirect: [f32; 3],
-    depth: f32,
-}
-
-fn render_pixel<S: InScatter>(
-    scene: &Scene<S>,
-    camera: &Camera,
-    settings: &MarchSettings,
-    spp: u32,
-    x: u32,
-    y: u32,
-    stats: &mut MarchStats,
-) -> Pixel {
-    let mut px = Pixel {
-        rgba: [0.0; 4],
-        direct: [0.0; 3],
-        indirect: [0.0; 3],
-        depth: 0.0,
-    };
-    let (mut depth_sum, mut alpha_sum) = (0.0f32, 0.0f32);
-    let inv = 1.0 / spp as f32;
-    for s in 0..spp {
-        let off = pixel_offset(x, y, s, spp);
-        let (origin, dir) = camera.ray(x as f32 + off.x, y as f32 + off.y);
-        let jitter = hash_unit(x, y, s, STREAM_STEP);
-        let r = march_ray(scene, origin, dir, jitter, settings, stats);
-        let alpha = 1.0 - r.transmittance;
-        let bg = scene.background.map(|e| e(dir));
-        for c in 0..3 {
-            let behind = bg.map_or(0.0, |e| r.transmittance * e[c]);
-            px.rgba[c] += inv * (r.direct[c] + r.indirect[c] + behind);
-            px.direct[c] += inv * r.direct[c];
-            px.indirect[c] += inv * r.indirect[c];
-        }
-        px.rgba[3] += inv * if bg.is_some() { 1.0 } else { alpha };
-        depth_sum += r.depth * alpha;
-        alpha_sum += alpha;
-    }
-    if alpha_sum > 0.0 {
-        px.depth = depth_sum / alpha_sum;
-    }
-    px
+    film::render_frame(
+        camera,
+        settings.spp,
+        scene.background,
+        progress,
+        |sample, stats: &mut MarchStats| {
+            let jitter = hash_unit(sample.x, sample.y, sample.index, STREAM_STEP);
+            march_ray(scene, sample.origin, sample.dir, jitter, settings, stats)
+        },
+    )
 }
 
 #[cfg(test)]

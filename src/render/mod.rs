@@ -3,6 +3,7 @@
 //! point the `render` command needs once it has a density, a transfer and an environment.
 
 pub mod camera;
+pub mod film;
 pub mod march;
 pub mod relight;
 
@@ -11,7 +12,8 @@ use std::time::{Duration, Instant};
 use glam::{DVec3, Vec3};
 
 pub use camera::Camera;
-pub use march::{render, Background, Frame, MarchSettings, MarchStats, Scene};
+pub use film::{Background, Frame, RayResult};
+pub use march::{render, MarchSettings, MarchStats, Scene};
 pub use relight::{relight, Radiance};
 
 use crate::error::Result;

@@ -178,6 +178,32 @@ impl Occupancy {
         dir: DVec3,
         t0: f64,
         t1: f64,
+        f: impl FnMut(Span) -> ControlFlow<()>,
+    ) {
+        self.visit(origin, dir, t0, t1, false, f);
+    }
+
+    /// [`Occupancy::visit_spans`], but a span ends wherever the bound changes, so each cell keeps
+    /// its own majorant: free-flight sampling takes long steps through thin blocks instead of the
+    /// densest block's short ones everywhere.
+    pub fn visit_majorants(
+        &self,
+        origin: DVec3,
+        dir: DVec3,
+        t0: f64,
+        t1: f64,
+        f: impl FnMut(Span) -> ControlFlow<()>,
+    ) {
+        self.visit(origin, dir, t0, t1, true, f);
+    }
+
+    fn visit(
+        &self,
+        origin: DVec3,
+        dir: DVec3,
+        t0: f64,
+        t1: f64,
+        split: bool,
         mut f: impl FnMut(Span) -> ControlFlow<()>,
     ) {
         let Some((lo, hi)) = self.bounds else { return };
@@ -192,14 +218,14 @@ impl Occupancy {
         let whole = (IVec3::MIN, IVec3::MAX);
         let flow = walk(origin, dir, t0, t1, NODE_LOG2, whole, |node, ta, tb| {
             match self.node(node) {
-                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m),
+                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
                 Some(NodeCell::Partial) => {
                     let blo = node << BLOCKS_PER_NODE_LOG2;
                     let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
                     let b_log2 = LEAF_LOG2 as i32;
                     walk(origin, dir, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
                         match self.blocks.get(&b) {
-                            Some(&m) => extend(&mut pending, tc, td, m),
+                            Some(&m) => extend(&mut pending, tc, td, m, split, &mut f)?,
                             None => {
                                 if let Some(s) = pending.take() {
                                     f(s)?;
@@ -236,21 +262,30 @@ impl Occupancy {
 }
 
 /// Grows the open span by the occupied cell [ta, tb]: consecutive occupied cells are contiguous,
-/// so they merge; an empty cell (handled by the caller) ends a span.
-fn extend(pending: &mut Option<Span>, ta: f64, tb: f64, m: f32) {
-    match pending {
-        Some(s) => {
+/// so they merge (with `split`, only while the bound stays the same; otherwise the open span goes
+/// to `f`); an empty cell (handled by the caller) ends a span.
+fn extend(
+    pending: &mut Option<Span>,
+    ta: f64,
+    tb: f64,
+    m: f32,
+    split: bool,
+    f: &mut impl FnMut(Span) -> ControlFlow<()>,
+) -> ControlFlow<()> {
+    if let Some(s) = pending {
+        if !split || s.max_density == m {
             s.t1 = tb;
             s.max_density = s.max_density.max(m);
+            return ControlFlow::Continue(());
         }
-        None => {
-            *pending = Some(Span {
-                t0: ta,
-                t1: tb,
-                max_density: m,
-            })
-        }
+        f(*s)?;
     }
+    *pending = Some(Span {
+        t0: ta,
+        t1: tb,
+        max_density: m,
+    });
+    ControlFlow::Continue(())
 }
 
 /// The part of [t0, t1] where `origin + t·dir` lies in the box [lo, hi] (slab test).
