@@ -42,6 +42,8 @@ pub enum Command {
     Bake(BakeCmd),
     /// Render a volume lit by an environment, with multiple scattering (.exr or .png).
     Render(RenderArgs),
+    /// Measure a render against a reference (e.g. the path tracer): relative RMSE over the volume.
+    Compare(CompareArgs),
 }
 
 /// Default extinction per world unit per unit density (DESIGN.md).
@@ -306,6 +308,26 @@ pub struct RenderArgs {
     pub cache: Option<PathBuf>,
     #[command(flatten)]
     pub bake: BakeArgs,
+}
+
+/// `vscatter compare IMAGE.exr REFERENCE.exr`.
+#[derive(Debug, Args)]
+pub struct CompareArgs {
+    /// The render to measure (.exr, rendered with --no-background).
+    pub image: PathBuf,
+    /// The reference (.exr, same size and camera), e.g. `render --method pathtrace`.
+    pub reference: PathBuf,
+    /// A second reference rendered with another --seed: its noise is then estimated and
+    /// subtracted, and the two are averaged.
+    #[arg(long, value_name = "EXR")]
+    pub reference2: Option<PathBuf>,
+    /// Write a false-colour difference image (.png): red brighter, blue darker than the reference,
+    /// full colour at ±25 %.
+    #[arg(long, value_name = "PNG")]
+    pub diff: Option<PathBuf>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// `render --method`.

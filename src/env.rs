@@ -262,50 +262,11 @@ fn check_size(path: &Path, width: usize, height: usize) -> Result<()> {
 type Pixels = (usize, usize, Vec<[f32; 3]>);
 
 fn read_exr(path: &Path) -> Result<Pixels> {
-    use exr::prelude::{read_first_rgba_layer_from_file, MetaData};
-    let bad = |e: exr::error::Error| match e {
-        exr::error::Error::Io(io) if io.kind() != std::io::ErrorKind::UnexpectedEof => {
-            Error::io(path, io)
-        }
-        exr::error::Error::Io(_) => Error::format(path, "truncated OpenEXR file"),
-        other => Error::format(
-            path,
-            format!("unreadable OpenEXR file (truncated or corrupt?): {other}"),
-        ),
-    };
-    // Check the sizes in the headers before the pixel reader allocates anything; every part, since
-    // the reader takes the first one with R, G, B channels, which need not be the first.
-    let meta = MetaData::read_from_file(path, false).map_err(bad)?;
-    if meta.headers.is_empty() {
-        return Err(Error::format(path, "OpenEXR file has no image part"));
-    }
-    for header in &meta.headers {
-        check_size(path, header.layer_size.width(), header.layer_size.height())?;
-    }
-    let image = read_first_rgba_layer_from_file(
-        path,
-        |size, _| {
-            (
-                size.width(),
-                vec![[0.0f32; 3]; size.width() * size.height()],
-            )
-        },
-        |(w, px): &mut (usize, Vec<[f32; 3]>), pos, (r, g, b, _a): (f32, f32, f32, f32)| {
-            px[pos.y() * *w + pos.x()] = [r, g, b];
-        },
-    )
-    .map_err(|e| match e {
-        // exr's words for "no part has the channels asked for".
-        exr::error::Error::Invalid(msg) if msg.contains("no layer") => {
-            Error::format(path, "OpenEXR file has no layer with R, G and B channels")
-        }
-        other => bad(other),
-    })?;
-    let size = image.layer_data.size;
+    let (width, height, rgba) = crate::image::read_exr_rgba(path, |w, h| check_size(path, w, h))?;
     Ok((
-        size.width(),
-        size.height(),
-        image.layer_data.channel_data.pixels.1,
+        width,
+        height,
+        rgba.into_iter().map(|[r, g, b, _]| [r, g, b]).collect(),
     ))
 }
 

@@ -183,6 +183,59 @@ fn encode_png<W: Write + Seek>(
     writer.finish().map_err(png_to_io)
 }
 
+/// The first RGB(A) layer of an OpenEXR file (alpha 1 where the file has none), after `check`
+/// has accepted the size of every part — before the pixel reader allocates anything.
+pub fn read_exr_rgba(
+    path: &Path,
+    check: impl Fn(usize, usize) -> Result<()>,
+) -> Result<(usize, usize, Vec<[f32; 4]>)> {
+    use exr::prelude::{read_first_rgba_layer_from_file, MetaData};
+    let bad = |e: exr::error::Error| match e {
+        exr::error::Error::Io(io) if io.kind() != std::io::ErrorKind::UnexpectedEof => {
+            Error::io(path, io)
+        }
+        exr::error::Error::Io(_) => Error::format(path, "truncated OpenEXR file"),
+        other => Error::format(
+            path,
+            format!("unreadable OpenEXR file (truncated or corrupt?): {other}"),
+        ),
+    };
+    // Check the sizes in the headers before the pixel reader allocates anything; every part, since
+    // the reader takes the first one with R, G, B channels, which need not be the first.
+    let meta = MetaData::read_from_file(path, false).map_err(bad)?;
+    if meta.headers.is_empty() {
+        return Err(Error::format(path, "OpenEXR file has no image part"));
+    }
+    for header in &meta.headers {
+        check(header.layer_size.width(), header.layer_size.height())?;
+    }
+    let image = read_first_rgba_layer_from_file(
+        path,
+        |size, _| {
+            (
+                size.width(),
+                vec![[0.0f32; 4]; size.width() * size.height()],
+            )
+        },
+        |(w, px): &mut (usize, Vec<[f32; 4]>), pos, (r, g, b, a): (f32, f32, f32, f32)| {
+            px[pos.y() * *w + pos.x()] = [r, g, b, a];
+        },
+    )
+    .map_err(|e| match e {
+        // exr's words for "no part has the channels asked for".
+        exr::error::Error::Invalid(msg) if msg.contains("no layer") => {
+            Error::format(path, "OpenEXR file has no layer with R, G and B channels")
+        }
+        other => bad(other),
+    })?;
+    let size = image.layer_data.size;
+    Ok((
+        size.width(),
+        size.height(),
+        image.layer_data.channel_data.pixels.1,
+    ))
+}
+
 fn exr_to_io(e: exr::error::Error) -> io::Error {
     match e {
         exr::error::Error::Io(e) => e,

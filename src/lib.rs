@@ -4,6 +4,7 @@
 pub mod atomic;
 pub mod bake;
 pub mod cli;
+pub mod compare;
 pub mod env;
 pub mod env_cmd;
 pub mod error;
@@ -33,5 +34,6 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Env(args) => env_cmd::run(&args),
         Command::Bake(args) => bake::run(&args, &cli.global),
         Command::Render(args) => render_cmd::run(&args, &cli.global),
+        Command::Compare(args) => compare::run(&args),
     }
 }

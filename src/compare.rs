@@ -1,0 +1,216 @@
+//! `vscatter compare IMAGE.exr REFERENCE.exr`: how far a render is from a reference — the measure
+//! of the accuracy report (issue 6) and of anyone checking their settings against the path
+//! tracer. Relative RMSE √mean((a−b)²) / mean(b) over the volume's pixels and all three channels.
+//!
+//! **Volume pixels** are those where either image's alpha exceeds [`VOLUME_ALPHA`]: render both
+//! with `--no-background`, so RGB is the volume's own light and alpha its coverage.
+//!
+//! **Reference noise.** A path-traced reference is noisy. Given a second, independent reference
+//! (`--reference2`, another `--seed`), the per-pixel noise variance is σ² = mean((b₁−b₂)²)/2; the
+//! comparison is then against their mean (noise σ²/2), and the noise's share is subtracted:
+//! error² = mean((a − (b₁+b₂)/2)²) − σ²/2, exact in expectation when a is deterministic.
+
+use std::path::Path;
+
+use crate::cli::CompareArgs;
+use crate::error::{Error, Result};
+use crate::image::{read_exr_rgba, ImageBuf, WriteOptions};
+
+/// Pixels where the volume covers at least this fraction count as the volume's: below it the
+/// pixel is mostly background, and relative errors of near-zero light say nothing.
+pub const VOLUME_ALPHA: f32 = 0.01;
+/// Relative difference shown as full red (a above b) or full blue (a below b) by `--diff`.
+const DIFF_FULL_SCALE: f32 = 0.25;
+
+/// The figures of one comparison.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Comparison {
+    /// Volume pixels compared.
+    pub pixels: usize,
+    /// Mean reference radiance over them.
+    pub reference_mean: f64,
+    /// √mean((a−b)²)/mean(b), the reference's noise subtracted when two were given.
+    pub relative_rmse: f64,
+    /// Before the subtraction.
+    pub relative_rmse_raw: f64,
+    /// The (averaged) reference's own noise, relative; 0 with one reference.
+    pub reference_noise: f64,
+    /// mean(a)/mean(b) − 1: the overall bias, which RMSE alone hides.
+    pub relative_bias: f64,
+}
+
+type Rgba = Vec<[f32; 4]>;
+
+fn read(path: &Path) -> Result<(usize, usize, Rgba)> {
+    read_exr_rgba(path, |w, h| {
+        if w.saturating_mul(h) > crate::render::camera::MAX_PIXELS as usize {
+            Err(Error::format(
+                path,
+                format!("{w}x{h} is too large to compare"),
+            ))
+        } else {
+            Ok(())
+        }
+    })
+}
+
+/// Compares `a` with the reference `b` (or the mean of `b` and `b2`), all of one size.
+pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Option<Comparison> {
+    let (mut n, mut sum_a, mut sum_b, mut err2, mut noise2) = (0usize, 0.0, 0.0, 0.0, 0.0);
+    for (i, (pa, pb)) in a.iter().zip(b).enumerate() {
+        let pb2 = b2.map(|r| r[i]);
+        let alpha = pa[3].max(pb[3]).max(pb2.map_or(0.0, |p| p[3]));
+        if alpha <= VOLUME_ALPHA {
+            continue;
+        }
+        n += 1;
+        for c in 0..3 {
+            let reference = match pb2 {
+                Some(p2) => {
+                    noise2 += (pb[c] as f64 - p2[c] as f64).powi(2) / 2.0;
+                    0.5 * (pb[c] as f64 + p2[c] as f64)
+                }
+                None => pb[c] as f64,
+            };
+            sum_a += pa[c] as f64;
+            sum_b += reference;
+            err2 += (pa[c] as f64 - reference).powi(2);
+        }
+    }
+    if n == 0 || sum_b <= 0.0 {
+        return None;
+    }
+    let count = (3 * n) as f64;
+    let mean_b = sum_b / count;
+    let (err2, noise2) = (err2 / count, noise2 / count);
+    // The averaged reference carries half the single-reference noise variance.
+    let averaged_noise2 = noise2 / 2.0;
+    Some(Comparison {
+        pixels: n,
+        reference_mean: mean_b,
+        relative_rmse: (err2 - averaged_noise2).max(0.0).sqrt() / mean_b,
+        relative_rmse_raw: err2.sqrt() / mean_b,
+        reference_noise: averaged_noise2.sqrt() / mean_b,
+        relative_bias: sum_a / sum_b - 1.0,
+    })
+}
+
+/// A false-colour image of (a − b)/mean(b): red where a is brighter, blue where darker, black
+/// where they agree, grey outside the volume.
+fn diff_image(w: usize, h: usize, a: &Rgba, b: &Rgba, mean_b: f64) -> ImageBuf {
+    let mut image = ImageBuf::new(w, h);
+    for (out, (pa, pb)) in image.rgba.iter_mut().zip(a.iter().zip(b)) {
+        if pa[3].max(pb[3]) <= VOLUME_ALPHA {
+            *out = [0.05, 0.05, 0.05, 1.0];
+            continue;
+        }
+        let d = ((pa[0] + pa[1] + pa[2]) - (pb[0] + pb[1] + pb[2])) as f64 / (3.0 * mean_b);
+        let v = (d as f32 / DIFF_FULL_SCALE).clamp(-1.0, 1.0);
+        *out = [v.max(0.0), 0.0, (-v).max(0.0), 1.0];
+    }
+    image
+}
+
+pub fn run(args: &CompareArgs) -> Result<()> {
+    if let Some(diff) = &args.diff {
+        if diff.extension().and_then(|e| e.to_str()) != Some("png") {
+            return Err(Error::usage(format!(
+                "--diff {}: must end in .png",
+                diff.display()
+            )));
+        }
+    }
+    let (w, h, a) = read(&args.image)?;
+    let mut refs = Vec::new();
+    for path in std::iter::once(&args.reference).chain(&args.reference2) {
+        let (rw, rh, px) = read(path)?;
+        if (rw, rh) != (w, h) {
+            return Err(Error::format(
+                path,
+                format!("is {rw}x{rh}, but {} is {w}x{h}", args.image.display()),
+            ));
+        }
+        refs.push(px);
+    }
+    let Some(c) = compare(&a, &refs[0], refs.get(1).map(Vec::as_slice)) else {
+        return Err(Error::Runtime(format!(
+            "{}: no volume pixels to compare (render both with --no-background; \
+             a pixel counts where alpha > {VOLUME_ALPHA})",
+            args.reference.display()
+        )));
+    };
+    if let Some(path) = &args.diff {
+        diff_image(w, h, &a, &refs[0], c.reference_mean).write(path, &WriteOptions::default())?;
+    }
+    if args.json {
+        println!("{}", serde_json::to_string(&c).unwrap_or_default());
+    } else {
+        println!(
+            "relative RMSE {:.2} % over {} volume pixels (raw {:.2} %, reference noise {:.2} %, bias {:+.2} %)",
+            100.0 * c.relative_rmse,
+            c.pixels,
+            100.0 * c.relative_rmse_raw,
+            100.0 * c.reference_noise,
+            100.0 * c.relative_bias
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn px(v: f32, a: f32) -> [f32; 4] {
+        [v, v, v, a]
+    }
+
+    #[test]
+    fn identical_images_have_zero_error() {
+        let a = vec![px(1.0, 1.0), px(2.0, 0.5), px(9.0, 0.0)];
+        let c = compare(&a, &a, None).unwrap();
+        assert_eq!(c.pixels, 2);
+        assert_eq!((c.relative_rmse, c.relative_bias), (0.0, 0.0));
+        assert_eq!(c.reference_mean, 1.5);
+    }
+
+    #[test]
+    fn a_uniform_ten_percent_excess_reads_ten_percent() {
+        let b = vec![px(1.0, 1.0), px(3.0, 1.0)];
+        let a: Vec<_> = b
+            .iter()
+            .map(|p| [p[0] * 1.1, p[1] * 1.1, p[2] * 1.1, 1.0])
+            .collect();
+        let c = compare(&a, &b, None).unwrap();
+        // √mean(0.1², 0.3²) / 2 = √0.05 / 2.
+        assert!((c.relative_rmse - 0.05f64.sqrt() / 2.0).abs() < 1e-6);
+        assert!((c.relative_bias - 0.1).abs() < 1e-6);
+    }
+
+    #[test]
+    fn reference_noise_is_subtracted() {
+        // Two references = truth + independent noise of σ = 0.3/√3 (uniform on ±0.3); the image
+        // = truth + 0.1. Raw error² = 0.01 + σ²/2; with the noise subtracted, 0.1 again.
+        use crate::render::camera::hash_unit;
+        let truth = 2.0f32;
+        let n = 20_000u32;
+        let noisy = |stream: u32| -> Vec<[f32; 4]> {
+            (0..n)
+                .map(|i| px(truth + 0.6 * (hash_unit(i, 0, 0, stream) - 0.5), 1.0))
+                .collect()
+        };
+        let (b1, b2) = (noisy(1), noisy(2));
+        let a: Vec<_> = (0..n).map(|_| px(truth + 0.1, 1.0)).collect();
+        let c = compare(&a, &b1, Some(&b2)).unwrap();
+        let sigma2 = 0.09 / 3.0;
+        assert!((c.relative_rmse_raw - (0.01f64 + sigma2 / 2.0).sqrt() / 2.0).abs() < 2e-3);
+        assert!((c.reference_noise - (sigma2 / 2.0).sqrt() / 2.0).abs() < 2e-3);
+        assert!((c.relative_rmse - 0.05).abs() < 3e-3, "{c:?}");
+    }
+
+    #[test]
+    fn nothing_to_compare_is_none() {
+        let a = vec![px(1.0, 0.0)];
+        assert_eq!(compare(&a, &a, None), None);
+    }
+}
