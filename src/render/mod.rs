@@ -89,7 +89,15 @@ pub fn render_volume(
     let t = Instant::now();
     let radiance = relight(transfer, env_coeffs);
     let relight_time = t.elapsed();
-    let source = march::TransferRadiance::new(&transfer.layout, &radiance);
+    // Direct light lost to geometric interpolation is partly scattered light instead — when the
+    // transfer has any (see `TransferRadiance`).
+    let multiple = transfer.f_ms.iter().any(|&v| v != 0.0);
+    let gap_to_indirect = if multiple {
+        transfer.medium.albedo
+    } else {
+        0.0
+    };
+    let source = march::TransferRadiance::new(&transfer.layout, &radiance, gap_to_indirect);
     let scene = Scene::new(density, &occupancy, transfer.medium, &source, background);
     let t = Instant::now();
     let (frame, stats) = march::render_with_progress(&scene, camera, settings, progress);
