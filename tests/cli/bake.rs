@@ -29,14 +29,17 @@ fn settings(bands: usize, scale: i32) -> BakeSettings {
 }
 
 /// Worst relative deviation of T_ri,₀ + F_ms,₀ from √(4π) (the white-furnace value), over transfer
-/// voxels whose 3³ neighbourhood of transfer voxels sits inside the density, and their count.
-fn furnace_deviation(density: &SparseGrid, t: &Transfer) -> (f32, usize) {
+/// voxels at least `depth` transfer voxels inside the density — their (2·depth + 1)³
+/// neighbourhood of transfer voxels sits inside — and their count.
+fn furnace_deviation(density: &SparseGrid, t: &Transfer, depth: i32) -> (f32, usize) {
     let full = (4.0 * std::f32::consts::PI).sqrt();
     let inside = |v: IVec3| density.sample_index((v * t.layout.k).as_vec3()) > 0.05;
+    let side = 2 * depth + 1;
+    let around = |i: i32| IVec3::new(i / (side * side), (i / side) % side, i % side) - depth;
     let mut worst = 0f32;
     let mut count = 0;
     for (slot, v) in t.layout.voxels().iter().enumerate() {
-        if (0..27).all(|i| inside(*v + IVec3::new(i / 9 - 1, (i / 3) % 3 - 1, i % 3 - 1))) {
+        if (0..side.pow(3)).all(|i| inside(*v + around(i))) {
             let dev = (t.t_ri(slot)[0] + t.f_ms(slot)[0]) / full - 1.0;
             worst = if dev.abs() > worst.abs() { dev } else { worst };
             count += 1;
@@ -48,20 +51,42 @@ fn furnace_deviation(density: &SparseGrid, t: &Transfer) -> (f32, usize) {
 #[test]
 fn white_furnace_where_transfer_voxels_are_optically_thin() {
     // Albedo 1 and at most ~0.5 optical depth per transfer voxel: the lattice must put back all
-    // the light the unscattered transfer misses. Measured worst deviations: cloud −2.5 % (limit
-    // 3 %, the issue's); torus +7.5 % — the lattice's ray effect: 26 beams running along the
-    // rings' axis-aligned tubes see long columns of sources (README, "Accuracy"). Its limit is a
+    // the light the unscattered transfer misses. Measured worst deviations: cloud −1.1 % (limit
+    // 3 %, the issue's); torus −5.8 % — the lattice's ray effect: its unscattered light runs on
+    // 26 beams, and along the rings' axis-aligned tubes some voxels see long dense columns on a
+    // beam where the fine T_ri sees the tube's round section (README, "Accuracy"). Its limit is a
     // regression guard just above what is achieved, not a target.
-    for (file, sigma_t, k, limit) in [("cloud.vdb", 0.08, 6, 0.03), ("torus.vdb", 0.15, 3, 0.085)] {
+    for (file, sigma_t, k, limit) in [("cloud.vdb", 0.08, 6, 0.03), ("torus.vdb", 0.15, 3, 0.065)] {
         let d = load(file);
         let medium = Medium {
             sigma_t,
             albedo: 1.0,
         };
         let (t, _) = bake(&d, medium, &settings(1, k), true);
-        let (worst, count) = furnace_deviation(&d, &t);
+        let (worst, count) = furnace_deviation(&d, &t, 1);
         assert!(count > 50, "{file}: only {count} interior voxels");
         assert!(worst.abs() < limit, "{file}: furnace off by {worst}");
+    }
+}
+
+#[test]
+fn white_furnace_where_the_volume_is_optically_thick() {
+    // Issue 4: albedo 1, more than 20 optical depths through the centre, every transfer voxel two
+    // or more transfer voxels inside within 3 %. Cloud: ~60 voxels of density 1 across, so σt 1
+    // gives ~60, at the default K = 6 (6 optical depths per face link). Torus: tubes 14 voxels
+    // across, σt 2 gives 28; no transfer voxel lies two inside a tube at K = 3 or 6, so K = 2.
+    // Measured: within 0.1 % (the lattice is driven by the environment at its boundary, module
+    // doc of `lattice`); it was −17 % (cloud) before.
+    for (file, sigma_t, k) in [("cloud.vdb", 1.0, 6), ("torus.vdb", 2.0, 2)] {
+        let d = load(file);
+        let medium = Medium {
+            sigma_t,
+            albedo: 1.0,
+        };
+        let (t, _) = bake(&d, medium, &settings(1, k), true);
+        let (worst, count) = furnace_deviation(&d, &t, 2);
+        assert!(count > 40, "{file}: only {count} voxels two inside");
+        assert!(worst.abs() < 0.03, "{file}: furnace off by {worst}");
     }
 }
 
@@ -153,8 +178,7 @@ fn t_ri_agrees_with_a_brute_force_reference() {
         medium,
         single,
         &indicatif::ProgressBar::hidden(),
-    )
-    .t_ri;
+    );
     let plain = OpticalDepth::new(&d, medium.sigma_t, false);
     let n = 10_000;
     let mut basis = vec![0f64; coeffs];
@@ -205,8 +229,7 @@ fn empty_space_skipping_changes_no_result() {
         bake_single(&d, &layout, medium, s, &indicatif::ProgressBar::hidden())
     };
     let (a, b) = (run(true), run(false));
-    assert_eq!(a.t_ri, b.t_ri);
-    assert_eq!(a.gathered, b.gathered);
+    assert_eq!(a, b);
 }
 
 #[test]
