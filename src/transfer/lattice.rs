@@ -13,10 +13,11 @@
 //!
 //! * **Cells along a direction.** Along direction j, cell x is the segment
 //!   [x − d_j·h/2, x + d_j·h/2] of length ℓ_j; its optical depth τ_j is integrated through the
-//!   fine density in sub-steps (links are attenuated by their own length and density, not a
-//!   per-voxel constant), and every track and escape below is exact for that piecewise-constant
-//!   profile — a midpoint rule is 4 % off at one optical depth per sub-step, which breaks the
-//!   equilibrium below by about as much.
+//!   fine density in sub-steps, an even number of them so the node lies between two (links are
+//!   attenuated by their own length and density, not a per-voxel constant), and every
+//!   transmittance and escape below is exact for that piecewise-constant profile — a midpoint
+//!   rule is 4 % off at one optical depth per sub-step, which breaks the equilibrium below by
+//!   about as much.
 //! * **Emission shares.** A cell scatters Q(x) isotropically, but along j it is represented by
 //!   its one line through the node, so beam j emits the share e_j = w_j·σ̄_j / Σ_k w_k·σ̄_k of Q,
 //!   σ̄_j = τ_j/ℓ_j, spread along the segment in proportion to the density (emission where the
@@ -52,13 +53,16 @@
 //!   cell or two under a surface. The former source, the first collisions gathered from the fine
 //!   T_ri, paired a fine injection with the lattice's coarser exchange across a surface (its
 //!   half-range moment is 0.23, not ¼): measured −22 % to −31 % inside a thick cloud.
-//! * **Fluence readout** (track-length estimator, weighted by link length). Per unit flux, the
-//!   track length inside the cell is ℓ·ε for entering flux and (ℓ/τ)·(1 − ε) for uniform emission
-//!   (→ ℓ and ℓ/2 as τ → 0); collisions are σ̄ = τ/ℓ times the track, consistently. Lattice lines
-//!   along d_j carry one node per ℓ_j, so each line's cross-section is V/ℓ_j and flux·track/V is
-//!   fluence: F_ms(x) = Σ over generations ≥ 1 and directions of flux × track. An isotropic
-//!   radiance c gives fluxes that read back 4πc·Σw_j = 4πc (for the DC coefficient, whose basis
-//!   function is 1/√(4π), c·√(4π)).
+//! * **Fluence readout, at the node.** Lattice lines along d_j carry one node per ℓ_j, so each
+//!   line's cross-section is V/ℓ_j and the flux crossing the node, times ℓ_j/V, is fluence there:
+//!   F_ms(x) = Σ over generations ≥ 1 and directions of ℓ_j·(P·e^(−τ_½) + E·η), τ_½ the depth
+//!   from the segment's start to the node and η the share of the emission upstream of the node
+//!   that reaches it. An isotropic radiance c gives fluxes that read back 4πc·Σw_j = 4πc (for the
+//!   DC coefficient, whose basis function is 1/√(4π), c·√(4π)). The renderer's T_ri is a value
+//!   at the node too, and in an equilibrium the flux is the same all along a line, so the lattice
+//!   total stays exact; a track-length readout (the segment's mean) compared a cell average with
+//!   T_ri's point value and put the surface voxels of the thick furnace up to 11 % off, not
+//!   5–8.5 %.
 //!
 //! A generation is computed by sweeping each direction once over the nodes in the order of
 //! x·d_j, so flux crosses the whole volume in one sweep (Gauss–Seidel in the direction of flight).
@@ -180,12 +184,12 @@ struct Links {
     target: Vec<u32>,
     /// e^(−τ) of the whole segment.
     trans: Vec<f32>,
-    /// Track length per unit entering flux, ℓ·ε (world units).
-    track_in: Vec<f32>,
+    /// Fluence at the node per unit entering flux, ℓ·e^(−τ_½) (world units).
+    read_in: Vec<f32>,
     /// Share of the cell's scattered power that leaves along d_j: e_j·ε/(1 − α·s).
     emit_out: Vec<f32>,
-    /// Track length inside per unit of the cell's scattered power: e_j·(ℓ/τ)(1 − ε)/(1 − α·s).
-    emit_track: Vec<f32>,
+    /// Fluence at the node per unit of the cell's scattered power: ℓ·e_j·η/(1 − α·s).
+    read_emit: Vec<f32>,
     /// Node order of the sweep for each direction (ascending x·d_j).
     order: Vec<Vec<u32>>,
     /// Flux entering each line from the environment, `D × coeffs`: P_ij = 4π·w_j·ȳ_ij/ℓ_j.
@@ -227,9 +231,9 @@ fn build_links(
     let mut links = Links {
         target: vec![NO_LINK; n * d],
         trans: vec![0.0; n * d],
-        track_in: vec![0.0; n * d],
+        read_in: vec![0.0; n * d],
         emit_out: vec![0.0; n * d],
-        emit_track: vec![0.0; n * d],
+        read_emit: vec![0.0; n * d],
         order: Vec::with_capacity(d),
         inflow: inflow(&dirs, &lengths, coeffs),
         dirs,
@@ -239,12 +243,12 @@ fn build_links(
         .target
         .par_chunks_mut(d)
         .zip(links.trans.par_chunks_mut(d))
-        .zip(links.track_in.par_chunks_mut(d))
+        .zip(links.read_in.par_chunks_mut(d))
         .zip(links.emit_out.par_chunks_mut(d))
-        .zip(links.emit_track.par_chunks_mut(d))
+        .zip(links.read_emit.par_chunks_mut(d))
         .zip(layout.voxels().par_iter())
         .for_each(
-            |(((((target, trans), track_in), emit_out), emit_track), &v)| {
+            |(((((target, trans), read_in), emit_out), read_emit), &v)| {
                 let mut acc = BlockSampler::new(density);
                 let x = layout.position(v);
                 let mut segments = Vec::with_capacity(d);
@@ -284,9 +288,9 @@ fn build_links(
                 let gain = 1.0 / (1.0 - (medium.albedo as f64 * self_share).min(MAX_SELF_GAIN));
                 for (j, seg) in segments.iter().enumerate() {
                     trans[j] = seg.trans;
-                    track_in[j] = seg.track_in;
+                    read_in[j] = seg.read_in;
                     emit_out[j] = (share(j) * gain * seg.escape as f64) as f32;
-                    emit_track[j] = (share(j) * gain * seg.track_emit as f64) as f32;
+                    read_emit[j] = (share(j) * gain * seg.read_emit as f64) as f32;
                 }
             },
         );
@@ -346,8 +350,8 @@ struct Segment {
     tau: f32,
     trans: f32,
     escape: f32,
-    track_in: f32,
-    track_emit: f32,
+    read_in: f32,
+    read_emit: f32,
 }
 
 /// Sub-step of a segment march, in voxels: segments are short (K/2 to K·√3 voxels) and marched
@@ -355,7 +359,7 @@ struct Segment {
 const SEGMENT_STEP_VOXELS: f32 = 0.5;
 
 /// (1 − e^(−t))/t: the share of light emitted uniformly along a sub-step of optical depth t that
-/// leaves it, and the mean transmittance of light entering it (track = dl times this).
+/// leaves it.
 fn leaving(t: f32) -> f32 {
     // Below this, the series 1 − t/2 is exact in f32 while the quotient loses digits.
     const SERIES_BELOW: f32 = 1e-4;
@@ -366,26 +370,15 @@ fn leaving(t: f32) -> f32 {
     }
 }
 
-/// (1 − leaving(t))/t: the mean track, in sub-step lengths, of uniform emission before it leaves
-/// the sub-step or collides.
-fn staying_track(t: f32) -> f32 {
-    const SERIES_BELOW: f32 = 1e-2;
-    if t < SERIES_BELOW {
-        0.5 - t / 6.0
-    } else {
-        (1.0 - leaving(t)) / t
-    }
-}
-
-/// Marches the segment from index point `a` to `b` (world length `length`), the density constant
-/// over each sub-step, and integrates exactly over that profile. Emission is spread along it in
-/// proportion to the density, as collisions are; ε and the emitted track are the density-weighted
-/// means of what escapes and how far it travels inside.
+/// Marches the segment from index point `a` to `b` (world length `length`; the node is its
+/// midpoint), the density constant over each sub-step, and integrates exactly over that profile.
+/// Emission is spread along it in proportion to the density, as collisions are; ε and η are the
+/// density-weighted shares of it that escape past the end and that cross the node.
 fn segment(acc: &mut BlockSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> Segment {
-    let steps = (((b - a).length() / SEGMENT_STEP_VOXELS).ceil() as usize).max(1);
+    let pairs = ((b - a).length() / (2.0 * SEGMENT_STEP_VOXELS)).ceil() as usize;
+    let steps = (2 * pairs.max(1)).min(MAX_SEGMENT_STEPS);
     let dl = length / steps as f32;
     let mut rho = [0f32; MAX_SEGMENT_STEPS];
-    let steps = steps.min(MAX_SEGMENT_STEPS);
     for (i, r) in rho.iter_mut().enumerate().take(steps) {
         *r = acc
             .sample(a + (b - a) * ((i as f32 + 0.5) / steps as f32))
@@ -396,41 +389,41 @@ fn segment(acc: &mut BlockSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) 
         *t = sigma_t * r * dl;
     }
     let (rho, taus) = (&rho[..steps], &taus[..steps]);
-    // Entering flux: transmittance and the track it spends inside.
-    let (mut tau, mut track_in) = (0.0f32, 0.0f32);
-    for &t in taus {
-        track_in += dl * (-tau).exp() * leaving(t);
+    // Optical depth from the start to the end of each sub-step; the node ends sub-step steps/2 − 1.
+    let mut ends = [0f32; MAX_SEGMENT_STEPS];
+    let mut tau = 0.0f32;
+    for (e, t) in ends.iter_mut().zip(taus) {
         tau += t;
+        *e = tau;
     }
-    // Emission in sub-step i, weighted by ρ_i: the share escaping past the end, and its track
-    // inside its own sub-step and then through the later ones.
-    let (mut weight, mut escape, mut track_emit) = (0.0f32, 0.0f32, 0.0f32);
-    for (i, (&r, &t)) in rho.iter().zip(taus).enumerate() {
+    let node = steps / 2;
+    let half = ends[node - 1];
+    // Emission in sub-step i, weighted by ρ_i: the share escaping past the end and, upstream of
+    // the node, the share crossing it.
+    let (mut weight, mut escape, mut crossing) = (0.0f32, 0.0f32, 0.0f32);
+    for (i, ((&r, &t), &end)) in rho.iter().zip(taus).zip(&ends).enumerate() {
         if r <= 0.0 {
             continue;
         }
-        let out = leaving(t);
-        let (mut depth, mut track) = (0.0f32, dl * staying_track(t));
-        for &later in &taus[i + 1..] {
-            track += dl * out * (-depth).exp() * leaving(later);
-            depth += later;
-        }
+        let out = r * leaving(t);
         weight += r;
-        escape += r * out * (-depth).exp();
-        track_emit += r * track;
+        escape += out * (-(tau - end)).exp();
+        if i < node {
+            crossing += out * (-(half - end)).exp();
+        }
     }
-    let (escape, track_emit) = if weight > 0.0 {
-        (escape / weight, track_emit / weight)
+    let (escape, crossing) = if weight > 0.0 {
+        (escape / weight, crossing / weight)
     } else {
         // Nothing is emitted in an empty segment; these values are never used with Q > 0.
-        (1.0, 0.5 * length)
+        (1.0, 0.5)
     };
     Segment {
         tau,
         trans: (-tau).exp(),
         escape,
-        track_in,
-        track_emit,
+        read_in: length * (-half).exp(),
+        read_emit: length * crossing,
     }
 }
 
@@ -475,13 +468,13 @@ fn transport_chunk(
                     let p = &links.inflow[j * coeffs + c0..j * coeffs + c0 + width];
                     incoming[r..r + width].copy_from_slice(p);
                 }
-                let (trans, track_in) = (links.trans[i], links.track_in[i]);
-                let (emit_out, emit_track) = (links.emit_out[i], links.emit_track[i]);
+                let (trans, read_in) = (links.trans[i], links.read_in[i]);
+                let (emit_out, read_emit) = (links.emit_out[i], links.read_emit[i]);
                 let mut out = [0f32; CHUNK];
                 for c in 0..width {
                     let p = incoming[r + c];
                     let e = emit[r + c];
-                    let contribution = readout * (p * track_in + e * emit_track);
+                    let contribution = readout * (p * read_in + e * read_emit);
                     fluence[r + c] += contribution;
                     // Only entering flux feeds the next generation: the cell's own emission
                     // re-collides inside its self-scattering gain already.
