@@ -93,17 +93,16 @@ pub fn bake(
         seed: settings.seed,
         skip_empty: true,
     };
-    let single = single::bake_single(density, &layout, medium, single, &bar);
+    let t_ri = single::bake_single(density, &layout, medium, single, &bar);
     bar.finish_and_clear();
     stats.single_seconds = clock.elapsed().as_secs_f64();
 
     let clock = std::time::Instant::now();
     let f_ms = match settings.single_scatter {
-        true => vec![0.0; single.t_ri.len()],
+        true => vec![0.0; t_ri.len()],
         false => {
             let first = lattice::Source {
-                t_ri: &single.t_ri,
-                gathered: &single.gathered,
+                t_ri: &t_ri,
                 coeffs,
                 medium,
             };
@@ -118,7 +117,7 @@ pub fn bake(
         layout,
         bands: settings.bands,
         medium,
-        t_ri: single.t_ri,
+        t_ri,
         f_ms,
     };
     (transfer, stats)
@@ -153,12 +152,12 @@ impl MemoryEstimate {
         // Single: batch results before they are scattered into T_ri (one more copy of T_ri).
         let single = one + sets;
         // Lattice: per-chunk results (one more copy); per link a target and four segment values
-        // (20 bytes) and a sweep-order entry (4); per voxel the boost; four chunk buffers a thread.
+        // (20 bytes) and a sweep-order entry (4); four chunk buffers a thread.
         let d = settings.lattice.directions() as u64;
         let lattice = if settings.single_scatter {
             0
         } else {
-            one + n * d * 24 + n * 4 + threads as u64 * 4 * n * 8 * 4
+            one + n * d * 24 + threads as u64 * 4 * n * 8 * 4
         };
         MemoryEstimate {
             density: density_bytes as u64,

@@ -14,7 +14,6 @@ use rayon::prelude::*;
 use super::grid::TransferLayout;
 use super::Medium;
 use crate::sh;
-use crate::volume::sampler::BlockSampler;
 use crate::volume::transmittance::OpticalDepth;
 use crate::volume::SparseGrid;
 
@@ -32,7 +31,7 @@ struct DirectionSet {
 }
 
 /// `n` points of the spherical Fibonacci lattice: equal-area, so each carries weight 4π/n.
-fn fibonacci(n: usize) -> Vec<Vec3> {
+pub(crate) fn fibonacci(n: usize) -> Vec<Vec3> {
     let golden = (1.0 + 5f64.sqrt()) / 2.0;
     (0..n)
         .map(|i| {
@@ -93,34 +92,14 @@ pub struct SingleSettings {
     pub skip_empty: bool,
 }
 
-/// Sub-points per axis for the gathered first-collision source: a 4³ stratified grid over the
-/// cell, direction i marched from sub-point i mod 64 — the same number of rays as T_ri, spread
-/// over the cell. Unscattered light dies within a voxel or two of a thick surface; 2³ points
-/// 3 voxels apart missed that layer (white furnace −16 % at 3 optical depths per link).
-const SUBCELLS: usize = 4;
-const SUBPOINTS: usize = SUBCELLS * SUBCELLS * SUBCELLS;
-/// The gathered source marches every 4th direction (weighted ×4): it only seeds the lattice,
-/// whose many scattering events average its noise, and it would otherwise double the bake.
-const GATHER_STRIDE: usize = 4;
-
-/// The single-scattering results per transfer voxel, `layout.len() × bands²` each.
-pub struct Single {
-    /// T_ri at the node: what the renderer relights.
-    pub t_ri: Vec<f32>,
-    /// (1/V)∫_cell ρ·T_ri dV: the density-weighted unscattered transfer gathered over the cell,
-    /// from which the lattice's first generation is emitted. A node-point sample would be wrong by
-    /// factors where the cell is optically thick, since T_ri falls by e^(−τ) across it.
-    pub gathered: Vec<f32>,
-}
-
-/// T_ri and the gathered source for every transfer voxel of `layout`.
+/// T_ri for every transfer voxel of `layout`, `layout.len() × bands²`.
 pub fn bake_single(
     density: &SparseGrid,
     layout: &TransferLayout,
     medium: Medium,
     settings: SingleSettings,
     progress: &indicatif::ProgressBar,
-) -> Single {
+) -> Vec<f32> {
     let coeffs = settings.bands * settings.bands;
     let sets = direction_sets(settings.samples, settings.bands, settings.seed);
     let depth = OpticalDepth::new(density, medium.sigma_t, settings.skip_empty);
@@ -134,94 +113,50 @@ pub fn bake_single(
         .flat_map(|(s, slots)| slots.chunks(PROJECTION_BATCH).map(move |c| (s, c)))
         .collect();
     let n = settings.samples;
-    let cell = layout.k as f32;
-    let subpoint = |i: usize| {
-        let at = |c: usize| cell * ((c as f32 + 0.5) / SUBCELLS as f32 - 0.5);
-        Vec3::new(
-            at(i / (SUBCELLS * SUBCELLS)),
-            at((i / SUBCELLS) % SUBCELLS),
-            at(i % SUBCELLS),
-        )
-    };
-    let results: Vec<(Vec<f32>, Vec<f32>)> = batches
+    let results: Vec<Vec<f32>> = batches
         .par_iter()
         .map(|&(s, slots)| {
             let set = &sets[s];
             let mut tr = vec![0f32; slots.len() * n];
-            let mut gathered = vec![0f32; slots.len() * n];
-            let mut acc = BlockSampler::new(density);
-            for ((row, grow), &slot) in tr
-                .chunks_exact_mut(n)
-                .zip(gathered.chunks_exact_mut(n))
-                .zip(slots)
-            {
+            for (row, &slot) in tr.chunks_exact_mut(n).zip(slots) {
                 let x = layout.position(layout.voxels()[slot as usize]);
                 for (t, d) in row.iter_mut().zip(&set.dirs) {
                     *t = depth.transmittance(x, *d);
                 }
-                let rho: [f32; SUBPOINTS] = std::array::from_fn(|o| acc.sample(x + subpoint(o)));
-                if rho.iter().all(|r| *r <= 0.0) {
-                    continue;
-                }
-                // Direction i (every GATHER_STRIDE-th) is marched from sub-point (i / stride) mod
-                // 64: Fibonacci points far apart in index, so every sub-point sees an even spread.
-                for (i, (g, d)) in grow
-                    .iter_mut()
-                    .zip(&set.dirs)
-                    .enumerate()
-                    .step_by(GATHER_STRIDE)
-                {
-                    let o = (i / GATHER_STRIDE) % SUBPOINTS;
-                    if rho[o] > 0.0 {
-                        let w = GATHER_STRIDE as f32 * rho[o];
-                        *g = w * depth.transmittance(x + subpoint(o), *d);
-                    }
-                }
             }
-            let project = |m: &[f32]| {
-                let mut out = vec![0f32; slots.len() * coeffs];
-                // out (m×C) = m (m×N) · weights (N×C), all row-major.
-                // SAFETY: the pointers and strides describe the three buffers exactly.
-                unsafe {
-                    matrixmultiply::sgemm(
-                        slots.len(),
-                        n,
-                        coeffs,
-                        1.0,
-                        m.as_ptr(),
-                        n as isize,
-                        1,
-                        set.weights.as_ptr(),
-                        coeffs as isize,
-                        1,
-                        0.0,
-                        out.as_mut_ptr(),
-                        coeffs as isize,
-                        1,
-                    );
-                }
-                out
-            };
+            let mut out = vec![0f32; slots.len() * coeffs];
+            // out (m×C) = tr (m×N) · weights (N×C), all row-major.
+            // SAFETY: the pointers and strides describe the three buffers exactly.
+            unsafe {
+                matrixmultiply::sgemm(
+                    slots.len(),
+                    n,
+                    coeffs,
+                    1.0,
+                    tr.as_ptr(),
+                    n as isize,
+                    1,
+                    set.weights.as_ptr(),
+                    coeffs as isize,
+                    1,
+                    0.0,
+                    out.as_mut_ptr(),
+                    coeffs as isize,
+                    1,
+                );
+            }
             progress.inc(slots.len() as u64);
-            (project(&tr), project(&gathered))
+            out
         })
         .collect();
-    let mut single = Single {
-        t_ri: vec![0f32; layout.len() * coeffs],
-        gathered: vec![0f32; layout.len() * coeffs],
-    };
-    for ((_, slots), (t, g)) in batches.iter().zip(results) {
-        for ((&slot, tc), gc) in slots
-            .iter()
-            .zip(t.chunks_exact(coeffs))
-            .zip(g.chunks_exact(coeffs))
-        {
+    let mut t_ri = vec![0f32; layout.len() * coeffs];
+    for ((_, slots), t) in batches.iter().zip(results) {
+        for (&slot, tc) in slots.iter().zip(t.chunks_exact(coeffs)) {
             let at = slot as usize * coeffs;
-            single.t_ri[at..at + coeffs].copy_from_slice(tc);
-            single.gathered[at..at + coeffs].copy_from_slice(gc);
+            t_ri[at..at + coeffs].copy_from_slice(tc);
         }
     }
-    single
+    t_ri
 }
 
 #[cfg(test)]
@@ -260,8 +195,7 @@ mod tests {
             medium,
             settings,
             &indicatif::ProgressBar::hidden(),
-        )
-        .t_ri;
+        );
         let dc = (4.0 * std::f32::consts::PI).sqrt();
         for c in t.chunks_exact(16) {
             assert!((c[0] - dc).abs() < 1e-4);

@@ -28,15 +28,14 @@ fn settings(bands: usize, scale: i32) -> BakeSettings {
     }
 }
 
-/// Worst relative deviation of T_ri,₀ + F_ms,₀ from √(4π) (the white-furnace value), over transfer
-/// voxels whose 3³ neighbourhood of transfer voxels sits inside the density, and their count.
-fn furnace_deviation(density: &SparseGrid, t: &Transfer) -> (f32, usize) {
+/// Worst relative deviation of T_ri,₀ + F_ms,₀ from √(4π) (the white-furnace value), over the
+/// transfer voxels `select` picks, and their count.
+fn furnace_deviation(t: &Transfer, select: impl Fn(IVec3) -> bool) -> (f32, usize) {
     let full = (4.0 * std::f32::consts::PI).sqrt();
-    let inside = |v: IVec3| density.sample_index((v * t.layout.k).as_vec3()) > 0.05;
     let mut worst = 0f32;
     let mut count = 0;
     for (slot, v) in t.layout.voxels().iter().enumerate() {
-        if (0..27).all(|i| inside(*v + IVec3::new(i / 9 - 1, (i / 3) % 3 - 1, i % 3 - 1))) {
+        if select(*v) {
             let dev = (t.t_ri(slot)[0] + t.f_ms(slot)[0]) / full - 1.0;
             worst = if dev.abs() > worst.abs() { dev } else { worst };
             count += 1;
@@ -45,23 +44,85 @@ fn furnace_deviation(density: &SparseGrid, t: &Transfer) -> (f32, usize) {
     (worst, count)
 }
 
+/// Transfer voxels at least `depth` transfer voxels inside the density: their (2·depth + 1)³
+/// neighbourhood of transfer voxels sits inside.
+fn inside_by(density: &SparseGrid, k: i32, depth: i32) -> impl Fn(IVec3) -> bool + '_ {
+    let inside = move |v: IVec3| density.sample_index((v * k).as_vec3()) > 0.05;
+    let side = 2 * depth + 1;
+    let around = move |i: i32| IVec3::new(i / (side * side), (i / side) % side, i % side) - depth;
+    move |v| (0..side.pow(3)).all(|i| inside(v + around(i)))
+}
+
+/// torus.vdb's rings (tools/vdbgen.py `rings_box`): major radius 24, tube radius 7, ring A in the
+/// XY plane around (34, 34, 34), ring B in the XZ plane around (58, 34, 34); each passes through
+/// the other's centre, so facing tube surfaces are 24 − 2·7 = 10 voxels apart.
+const RING_GAP: f32 = 10.0;
+
+/// Signed distances of index point `p` to the surfaces of rings A and B.
+fn ring_distances(p: Vec3) -> (f32, f32) {
+    let (c, major, tube) = (Vec3::splat(34.0), 24.0f32, 7.0f32);
+    let a = ((p.x - c.x).hypot(p.y - c.y) - major).hypot(p.z - c.z) - tube;
+    let b = ((p.x - c.x - major).hypot(p.z - c.z) - major).hypot(p.y - c.y) - tube;
+    (a, b)
+}
+
 #[test]
 fn white_furnace_where_transfer_voxels_are_optically_thin() {
     // Albedo 1 and at most ~0.5 optical depth per transfer voxel: the lattice must put back all
-    // the light the unscattered transfer misses. Measured worst deviations: cloud −2.5 % (limit
-    // 3 %, the issue's); torus +7.5 % — the lattice's ray effect: 26 beams running along the
-    // rings' axis-aligned tubes see long columns of sources (README, "Accuracy"). Its limit is a
+    // the light the unscattered transfer misses. Measured worst deviations: cloud −0.8 % (limit
+    // 3 %, the issue's); torus −5.4 % — the lattice's ray effect: its unscattered light runs on
+    // 26 beams, and along the rings' axis-aligned tubes some voxels see long dense columns on a
+    // beam where the fine T_ri sees the tube's round section (README, "Accuracy"). Its limit is a
     // regression guard just above what is achieved, not a target.
-    for (file, sigma_t, k, limit) in [("cloud.vdb", 0.08, 6, 0.03), ("torus.vdb", 0.15, 3, 0.085)] {
+    for (file, sigma_t, k, limit) in [("cloud.vdb", 0.08, 6, 0.03), ("torus.vdb", 0.15, 3, 0.06)] {
         let d = load(file);
         let medium = Medium {
             sigma_t,
             albedo: 1.0,
         };
         let (t, _) = bake(&d, medium, &settings(1, k), true);
-        let (worst, count) = furnace_deviation(&d, &t);
+        let (worst, count) = furnace_deviation(&t, inside_by(&d, k, 1));
         assert!(count > 50, "{file}: only {count} interior voxels");
         assert!(worst.abs() < limit, "{file}: furnace off by {worst}");
+    }
+}
+
+#[test]
+fn white_furnace_where_the_volume_is_optically_thick() {
+    // Issue 4: albedo 1, more than 20 optical depths through the centre, every transfer voxel two
+    // or more transfer voxels inside within 3 %. Cloud: ~60 voxels of density 1 across, so σt 1
+    // gives ~60, at the default K = 6 (6 optical depths per face link). Torus: tubes 14 voxels
+    // across, σt 2 gives 28; no transfer voxel lies two inside a tube at K = 3 or 6, so K = 2.
+    // Measured: within 0.1 % (the lattice is driven by the environment at its boundary, module
+    // doc of `lattice`); it was −17 % (cloud) before. Every voxel inside, surface included:
+    // cloud −4.7 %, torus −8.5 % (where T_ri and the lattice's own unscattered light differ);
+    // those limits are regression guards just above what is achieved. The torus voxels of one
+    // ring facing the other across the gap, lit across it through gap-jumping links: +2.7 %.
+    for (file, sigma_t, k, surface) in [("cloud.vdb", 1.0, 6, 0.055), ("torus.vdb", 2.0, 2, 0.095)]
+    {
+        let d = load(file);
+        let medium = Medium {
+            sigma_t,
+            albedo: 1.0,
+        };
+        let (t, _) = bake(&d, medium, &settings(1, k), true);
+        let (worst, count) = furnace_deviation(&t, inside_by(&d, k, 2));
+        assert!(count > 40, "{file}: only {count} voxels two inside");
+        assert!(worst.abs() < 0.03, "{file}: furnace off by {worst}");
+        let (worst, _) = furnace_deviation(&t, inside_by(&d, k, 0));
+        assert!(
+            worst.abs() < surface,
+            "{file}: furnace off by {worst} at the surface"
+        );
+        if file == "torus.vdb" {
+            let facing = |v: IVec3| {
+                let (a, b) = ring_distances((v * k).as_vec3());
+                a.min(b) <= 0.0 && a.max(b) <= RING_GAP + k as f32
+            };
+            let (worst, count) = furnace_deviation(&t, facing);
+            assert!(count > 100, "only {count} voxels face the other ring");
+            assert!(worst.abs() < 0.03, "furnace off by {worst} across the gap");
+        }
     }
 }
 
@@ -153,8 +214,7 @@ fn t_ri_agrees_with_a_brute_force_reference() {
         medium,
         single,
         &indicatif::ProgressBar::hidden(),
-    )
-    .t_ri;
+    );
     let plain = OpticalDepth::new(&d, medium.sigma_t, false);
     let n = 10_000;
     let mut basis = vec![0f64; coeffs];
@@ -205,8 +265,7 @@ fn empty_space_skipping_changes_no_result() {
         bake_single(&d, &layout, medium, s, &indicatif::ProgressBar::hidden())
     };
     let (a, b) = (run(true), run(false));
-    assert_eq!(a.t_ri, b.t_ri);
-    assert_eq!(a.gathered, b.gathered);
+    assert_eq!(a, b);
 }
 
 #[test]

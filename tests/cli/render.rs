@@ -196,34 +196,39 @@ fn read_rgb(path: &std::path::Path) -> Vec<[f32; 3]> {
 #[test]
 fn white_furnace_through_the_whole_chain() {
     // Albedo 1 under a constant environment 1: every pixel is 1, however the cloud scatters.
-    // σt = 0.08 keeps one transfer voxel (K = 6) under 0.5 optical depth.
+    // σt = 0.08 keeps one transfer voxel (K = 6) under 0.5 optical depth: limit 3 %, measured
+    // +1.1 %. The default σt 1 puts 6 optical depths on a face link: measured −3.1 %, where the
+    // fine T_ri and the lattice's own unscattered light differ in surface voxels (README,
+    // "Accuracy"); its limit is a regression guard just above that.
     let dir = tempfile::tempdir().unwrap();
     let (cloud, env) = (fixture("cloud.vdb"), fixture("env/constant.exr"));
-    let o = vscatter_in(
-        dir.path(),
-        &[
-            "render",
-            cloud.to_str().unwrap(),
-            "-o",
-            "f.exr",
-            "--env",
-            env.to_str().unwrap(),
-            "--albedo",
-            "1",
-            "--sigma-t",
-            "0.08",
-            "--res",
-            "96x64",
-            "--samples",
-            "256",
-        ],
-    );
-    assert!(o.status.success(), "{}", stderr(&o));
-    let worst = read_rgb(&dir.path().join("f.exr"))
-        .iter()
-        .flat_map(|p| p.iter().map(|v| (v - 1.0).abs()))
-        .fold(0f32, f32::max);
-    assert!(worst < 0.03, "furnace pixel off by {worst}");
+    for (sigma_t, limit) in [("0.08", 0.03), ("1", 0.035)] {
+        let o = vscatter_in(
+            dir.path(),
+            &[
+                "render",
+                cloud.to_str().unwrap(),
+                "-o",
+                "f.exr",
+                "--env",
+                env.to_str().unwrap(),
+                "--albedo",
+                "1",
+                "--sigma-t",
+                sigma_t,
+                "--res",
+                "96x64",
+                "--samples",
+                "256",
+            ],
+        );
+        assert!(o.status.success(), "{}", stderr(&o));
+        let worst = read_rgb(&dir.path().join("f.exr"))
+            .iter()
+            .flat_map(|p| p.iter().map(|v| (v - 1.0).abs()))
+            .fold(0f32, f32::max);
+        assert!(worst < limit, "σt {sigma_t}: furnace pixel off by {worst}");
+    }
 }
 
 #[test]
