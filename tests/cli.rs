@@ -5,6 +5,8 @@
 mod bake;
 #[path = "cli/env.rs"]
 mod env;
+#[path = "cli/pathtrace.rs"]
+mod pathtrace;
 #[path = "cli/render.rs"]
 mod render;
 #[path = "cli/vdb.rs"]

@@ -7,7 +7,7 @@ two seeds each so the path tracer's own noise is estimated and subtracted (`vsca
 then sweeps the optical depth per transfer voxel and the bake settings, and writes
 docs/accuracy.md with the tables and side-by-side / difference images in docs/accuracy/.
 
-Run through tools/accuracy.sh. Knobs (environment): RES (default 128x72), SPP (path tracer samples
+Run through tools/accuracy.sh. Knobs (environment): RES (default 96x54), SPP (path tracer samples
 per pixel, 1024), TSPP (transfer samples per pixel, 16: the same box filter as the path tracer's),
 QUICK=1 (a smoke run: 48x27, 64 spp, one environment, no sweeps).
 """
@@ -27,7 +27,7 @@ OUT = Path(os.environ.get("ACCURACY_OUT", ROOT / "target" / "accuracy"))
 QUICK = os.environ.get("QUICK") == "1"
 # A quick run is a smoke test of the tool: its report stays out of docs/.
 DOCS = OUT / "docs" if QUICK else ROOT / "docs"
-RES = os.environ.get("RES", "48x27" if QUICK else "128x72")
+RES = os.environ.get("RES", "48x27" if QUICK else "96x54")
 SPP = int(os.environ.get("SPP", "64" if QUICK else "1024"))
 TSPP = int(os.environ.get("TSPP", "16"))
 FIXTURES = ["cloud", "torus"]
@@ -101,8 +101,19 @@ def compare(image, ref1, ref2, diff=None):
     return json.loads(out.stdout)
 
 
+REFERENCES = {}
+
+
 def reference(fx, env, albedo, sigma_t, bounces, png=False):
-    """Two path-traced seeds: (exr1, exr2, seconds of one, noise of one image)."""
+    """Two path-traced seeds: (exr1, exr2, seconds of one, noise of one image), rendered once per
+    run for each scene."""
+    key = (fx, env, albedo, sigma_t, bounces)
+    if key not in REFERENCES or (png and not REFERENCES[key][0].with_suffix(".png").exists()):
+        REFERENCES[key] = render_reference(fx, env, albedo, sigma_t, bounces, png)
+    return REFERENCES[key]
+
+
+def render_reference(fx, env, albedo, sigma_t, bounces, png):
     a, t = pathtrace(fx, env, albedo, sigma_t, bounces, 1, png)
     b, _ = pathtrace(fx, env, albedo, sigma_t, bounces, 2)
     noise_one = compare(a, a, b)["reference_noise"] * math.sqrt(2.0)

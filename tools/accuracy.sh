@@ -4,7 +4,7 @@
 # transfer voxel and of the bake settings. Writes docs/accuracy.md and docs/accuracy/*.png.
 # Needs python3 and ImageMagick (`convert`). About an hour on 2 cores at the defaults;
 # QUICK=1 tools/accuracy.sh is a two-minute smoke run into target/accuracy/docs/.
-# Knobs: RES (128x72), SPP (1024, path tracer), TSPP (16, transfer), ACCURACY_OUT (target/accuracy).
+# Knobs: RES (96x54), SPP (1024, path tracer), TSPP (16, transfer), ACCURACY_OUT (target/accuracy).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 exec python3 tools/accuracy.py "$@"
