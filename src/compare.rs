@@ -140,7 +140,16 @@ pub fn run(args: &CompareArgs) -> Result<()> {
         )));
     };
     if let Some(path) = &args.diff {
-        diff_image(w, h, &a, &refs[0], c.reference_mean).write(path, &WriteOptions::default())?;
+        // Against the mean of the references: half the noise variance of either.
+        let reference: Rgba = match refs.get(1) {
+            Some(r2) => refs[0]
+                .iter()
+                .zip(r2)
+                .map(|(p, q)| std::array::from_fn(|c| 0.5 * (p[c] + q[c])))
+                .collect(),
+            None => refs[0].clone(),
+        };
+        diff_image(w, h, &a, &reference, c.reference_mean).write(path, &WriteOptions::default())?;
     }
     if args.json {
         println!("{}", serde_json::to_string(&c).unwrap_or_default());
