@@ -27,8 +27,9 @@ use rayon::prelude::*;
 use crate::render::camera::{hash_unit, pixel_offset, Camera, STREAM_STEP};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
+use crate::volume::bricks::{BrickSampler, Bricks};
 use crate::volume::dda::{clip_to_box, Occupancy};
-use crate::volume::sampler::{floor_to_int, BlockSampler};
+use crate::volume::sampler::floor_to_int;
 use crate::volume::sparse::corner;
 use crate::volume::SparseGrid;
 
@@ -133,6 +134,8 @@ pub struct Scene<'a, S: InScatter> {
     pub source: &'a S,
     /// `None` renders the volume alone (`--no-background`): RGB premultiplied, alpha = 1 − Tr.
     pub background: Option<Background<'a>>,
+    /// The density as apron bricks, for the march's samples.
+    pub bricks: Bricks,
     /// The trilinear support of the density in index space, `None` when nothing is active.
     support: Option<(DVec3, DVec3)>,
 }
@@ -155,6 +158,7 @@ impl<'a, S: InScatter> Scene<'a, S> {
             medium,
             source,
             background,
+            bricks: Bricks::build(density),
             support,
         }
     }
@@ -268,7 +272,7 @@ pub fn march_ray<S: InScatter>(
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
-    let mut sampler = BlockSampler::new(scene.density);
+    let mut sampler = BrickSampler::new(&scene.bricks, scene.density);
     let mut corners = S::Cache::default();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
