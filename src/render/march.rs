@@ -37,9 +37,13 @@ use crate::volume::SparseGrid;
 /// the ray (its in-scatter and the background it would dim further) is replaced by Tr·E: exact in
 /// a white furnace, and otherwise off by at most 0.1 % of the brighter of Ls and E.
 pub const TERMINATION_TRANSMITTANCE: f32 = 1e-3;
-/// Default step length in voxels (of the smallest voxel edge): two samples per voxel resolve the
-/// trilinear density without visible banding, at half the cost of four.
-pub const DEFAULT_STEP_VOXELS: f32 = 0.5;
+/// Default step length in voxels (of the smallest voxel edge), as `vdb_render`'s primary step.
+/// Measured against 0.25-voxel steps at 960×540 on the cloud and cloud_large caches (σt 1.6): the
+/// mean pixel error is 0.24–0.34 % (a −0.1 to −0.3 % bias; 0.05–0.07 % at 0.5 voxel), below 1 % on
+/// 95 % of the cloud's pixels, with no visible banding (the per-pixel jitter turns it into noise);
+/// the albedo-0 chord error is 1.5e-3 (3.8e-4 at 0.5) and the white furnace through the whole
+/// chain is unchanged (2.75 %). Half the steps of 0.5 voxel, at half the march's cost.
+pub const DEFAULT_STEP_VOXELS: f32 = 1.0;
 /// Edge of the square image tiles handed to rayon: big enough to amortise scheduling, small enough
 /// that both cores stay busy until the last tile even when the volume covers a corner of the frame.
 const TILE: u32 = 32;
@@ -81,7 +85,7 @@ impl<'a> TransferRadiance<'a> {
     }
 }
 
-/// The corner slots of the cell holding the last sample: a ray takes about 2K steps per transfer
+/// The corner slots of the cell holding the last sample: a ray takes about K steps per transfer
 /// voxel, so the lookup is paid once per cell crossed, not per step.
 #[derive(Default)]
 pub struct CornerCache {

@@ -5,7 +5,7 @@
 //! (the block's own 8³ plus a one-voxel apron from its upper neighbours, as NanoVDB-style renderers
 //! do), so a sample costs one hash lookup per block crossed and then eight loads at fixed offsets,
 //! with no per-corner block test. Values come from [`SparseGrid::value`] and blend with
-//! [`trilinear`], so a sample is bit-identical to [`SparseGrid::sample_index`].
+//! `trilinear`, so a sample is bit-identical to [`SparseGrid::sample_index`].
 //!
 //! **Which blocks.** Only blocks whose 2×2×2 upper neighbourhood holds a leaf or an 8³ tile get an
 //! entry: the leaves and their lower one-block shell, so memory follows the active leaves. An entry
