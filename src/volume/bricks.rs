@@ -7,11 +7,12 @@
 //! with no per-corner block test. Values come from [`SparseGrid::value`] and blend with
 //! `trilinear`, so a sample is bit-identical to [`SparseGrid::sample_index`].
 //!
-//! **Which blocks.** Only blocks whose 2×2×2 upper neighbourhood holds a leaf or an 8³ tile get an
-//! entry: the leaves and their lower one-block shell, so memory follows the active leaves. An entry
-//! whose eight corner blocks are one constant (a tile interior, or a zero shell around a zero leaf)
-//! keeps just that value — trilinear of eight equal values is that value exactly. Every other block
-//! (empty space, the inside or rim of a 128³ tile) goes to the cached [`BlockSampler`].
+//! **Which blocks.** The blocks within one block of a leaf or an 8³ tile get an entry — the same
+//! 3×3×3 dilation the DDA's spans cover (`volume::dda`), so nearly every sample the march takes
+//! finds one, and their number follows the active leaves. An entry whose eight corner blocks are
+//! one constant (a tile interior, the empty shell above a leaf) keeps just that value — trilinear
+//! of eight equal values is that value exactly — and only the others hold a brick. Every other
+//! block (empty space, the inside or rim of a 128³ tile) goes to the cached [`BlockSampler`].
 
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
@@ -60,7 +61,10 @@ impl Bricks {
             .map(|l| l.origin)
             .chain(grid.tiles(TileLevel::Block).map(|(o, _)| o));
         let mut keys: Vec<IVec3> = sources
-            .flat_map(|o| (0..8).map(move |n| (o >> LEAF_LOG2 as i32) - corner(n)))
+            .flat_map(|o| {
+                let key = o >> LEAF_LOG2 as i32;
+                (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
+            })
             .collect();
         // Sorted (x-major, as leaves are stored) so neighbouring bricks sit near each other.
         keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
@@ -161,7 +165,7 @@ impl<'a> BrickSampler<'a> {
                 let brick = &self.bricks.values[b as usize];
                 let l = (i0 & (LEAF_DIM - 1)).as_uvec3();
                 let base = (l.x as usize * BRICK_DIM + l.y as usize) * BRICK_DIM + l.z as usize;
-                let c = CORNER_OFFSETS.map(|o| brick[base + o]);
+                let c: [f32; 8] = std::array::from_fn(|n| brick[base + CORNER_OFFSETS[n]]);
                 trilinear(c, p - i0.as_vec3())
             }
             Some(Entry::Uniform(v)) => v,
@@ -212,16 +216,18 @@ mod tests {
 
     #[test]
     fn tile_interiors_take_no_brick() {
-        // 3×3×3 tiles of 1: entries for their blocks and the lower shell (4³ = 64); the 2³ blocks
-        // whose corner blocks are all tiles keep a value, the other 56 a brick.
+        // 3×3×3 tiles of 1: entries for them and a one-block shell (5³ = 125). The 2³ blocks whose
+        // corner blocks are all tiles keep the value 1, the 61 whose corner blocks are all empty
+        // keep 0, and the other 56 a brick.
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         for n in 0..27 {
             let b = IVec3::new(n / 9, (n / 3) % 3, n % 3);
             g.insert_tile(TileLevel::Block, b * LEAF_DIM, 1.0);
         }
         let bricks = Bricks::build(&g);
-        assert_eq!((bricks.entries.len(), bricks.values.len()), (64, 56));
+        assert_eq!((bricks.entries.len(), bricks.values.len()), (125, 56));
         assert_eq!(bricks.entries[&IVec3::ONE], Entry::Uniform(1.0));
         assert!(matches!(bricks.entries[&IVec3::splat(2)], Entry::Brick(_)));
+        assert_eq!(bricks.entries[&IVec3::new(3, 0, -1)], Entry::Uniform(0.0));
     }
 }
