@@ -291,10 +291,11 @@ pub fn march_ray<S: InScatter>(
             let rho = sampler.sample(p);
             if rho > 0.0 {
                 let tau = sigma_t * rho * step_f32;
-                // e^{−τ} − 1 once: the step's opacity 1 − e^{−τ} without cancellation for thin
-                // steps, and its transmittance.
-                let em1 = (-tau).exp_m1();
-                let (step_tr, opacity) = (1.0 + em1, -em1);
+                // One exp: glibc's expf costs about a third of expm1f (measured: 10 % of the
+                // render's CPU time). The opacity 1 − e^{−τ} loses relative precision only for
+                // τ ≲ 1e-4, where the step adds almost nothing, and Tr still telescopes.
+                let step_tr = (-tau).exp();
+                let opacity = 1.0 - step_tr;
                 if albedo > 0.0 {
                     let [ls_d, ls_i] = scene.source.radiance(p, &mut corners);
                     let c = tr * albedo * opacity;
