@@ -63,8 +63,10 @@ impl ImageBuf {
         }
     }
 
-    /// Writes EXR or PNG according to the extension of `path` (case-insensitive).
-    pub fn write(&self, path: &Path, options: &WriteOptions) -> Result<()> {
+    /// Writes EXR or PNG according to the extension of `path` (case-insensitive). Consumes the
+    /// image: the EXR writer takes its channels over instead of copying them (a 1080p render
+    /// carries eleven 8 MB float planes).
+    pub fn write(self, path: &Path, options: &WriteOptions) -> Result<()> {
         let ext = path
             .extension()
             .map(|e| e.to_string_lossy().to_ascii_lowercase());
@@ -106,7 +108,7 @@ impl ImageBuf {
     }
 
     /// Writes a single-part scanline EXR, ZIP-compressed, with channels R, G, B, A and every extra.
-    pub fn write_exr(&self, path: &Path, precision: ExrPrecision) -> Result<()> {
+    pub fn write_exr(self, path: &Path, precision: ExrPrecision) -> Result<()> {
         self.check()?;
         let samples = |values: Vec<f32>| match precision {
             ExrPrecision::Float => FlatSamples::F32(values),
@@ -119,8 +121,8 @@ impl ImageBuf {
                 AnyChannel::new(*name, samples(self.rgba.iter().map(|p| p[k]).collect()))
             })
             .collect();
-        for (name, values) in &self.extra {
-            channels.push(AnyChannel::new(name.as_str(), samples(values.clone())));
+        for (name, values) in self.extra {
+            channels.push(AnyChannel::new(name.as_str(), samples(values)));
         }
         let layer = Layer::new(
             (self.width, self.height),
@@ -315,7 +317,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let img = test_image();
         let path = dir.path().join("t.png");
-        img.write(&path, &WriteOptions::default()).unwrap();
+        img.clone().write(&path, &WriteOptions::default()).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         assert_eq!(&bytes[1..4], b"PNG");
         assert!(matches!(

@@ -144,7 +144,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         ..MarchSettings::default()
     };
     let bar = crate::progress::bar(0, "render", global.quiet);
-    let (frame, march_stats, timings) = render_volume(
+    let (frame, march_stats, report) = render_volume(
         &density, &transfer, &coeffs, background, &camera, &settings, &bar,
     );
     let write_seconds = write_frame(frame, args)?;
@@ -159,9 +159,11 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             "bake_seconds": bake_seconds,
             "from_cache": cached,
             "transfer_voxels": transfer.layout.len(),
-            "occupancy_seconds": timings.occupancy.as_secs_f64(),
-            "relight_seconds": timings.relight.as_secs_f64(),
-            "march_seconds": timings.march.as_secs_f64(),
+            "occupancy_seconds": report.occupancy.as_secs_f64(),
+            "relight_seconds": report.relight.as_secs_f64(),
+            "bricks_seconds": report.bricks.as_secs_f64(),
+            "march_seconds": report.march.as_secs_f64(),
+            "brick_bytes": report.brick_bytes,
             "write_seconds": write_seconds,
             "rays": march_stats.rays,
             "samples_taken": march_stats.samples_taken,

@@ -27,8 +27,9 @@ use crate::render::camera::{hash_unit, Camera, STREAM_STEP};
 use crate::render::film::{self, Background, Frame, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
+use crate::volume::bricks::{BrickSampler, Bricks};
 use crate::volume::dda::{clip_to_box, Occupancy};
-use crate::volume::sampler::{floor_to_int, BlockSampler};
+use crate::volume::sampler::floor_to_int;
 use crate::volume::sparse::corner;
 use crate::volume::SparseGrid;
 
@@ -36,9 +37,13 @@ use crate::volume::SparseGrid;
 /// the ray (its in-scatter and the background it would dim further) is replaced by Tr·E: exact in
 /// a white furnace, and otherwise off by at most 0.1 % of the brighter of Ls and E.
 pub const TERMINATION_TRANSMITTANCE: f32 = 1e-3;
-/// Default step length in voxels (of the smallest voxel edge): two samples per voxel resolve the
-/// trilinear density without visible banding, at half the cost of four.
-pub const DEFAULT_STEP_VOXELS: f32 = 0.5;
+/// Default step length in voxels (of the smallest voxel edge), as `vdb_render`'s primary step.
+/// Measured against 0.25-voxel steps at 960×540 on the cloud and cloud_large caches (σt 1.6): the
+/// mean pixel error is 0.24–0.34 % (a −0.1 to −0.3 % bias; 0.05–0.07 % at 0.5 voxel), below 1 % on
+/// 95 % of the cloud's pixels, with no visible banding (the per-pixel jitter turns it into noise);
+/// the albedo-0 chord error is 1.5e-3 (3.8e-4 at 0.5) and the white furnace through the whole
+/// chain is unchanged (2.75 %). Half the steps of 0.5 voxel, at half the march's cost.
+pub const DEFAULT_STEP_VOXELS: f32 = 1.0;
 
 /// The in-scattered radiance Ls at a point of the medium, direct and indirect parts.
 pub trait InScatter: Sync {
@@ -104,7 +109,7 @@ impl<'a> TransferRadiance<'a> {
     }
 }
 
-/// The corner slots of the cell holding the last sample: a ray takes about 2K steps per transfer
+/// The corner slots of the cell holding the last sample: a ray takes about K steps per transfer
 /// voxel, so the lookup is paid once per cell crossed, not per step.
 #[derive(Default)]
 pub struct CornerCache {
@@ -170,6 +175,8 @@ pub struct Scene<'a, S: InScatter> {
     pub source: &'a S,
     /// `None` renders the volume alone (`--no-background`): RGB premultiplied, alpha = 1 − Tr.
     pub background: Option<Background<'a>>,
+    /// The density as apron bricks, for the march's samples.
+    pub bricks: Bricks,
     /// The trilinear support of the density in index space, `None` when nothing is active.
     support: Option<(DVec3, DVec3)>,
 }
@@ -192,6 +199,7 @@ impl<'a, S: InScatter> Scene<'a, S> {
             medium,
             source,
             background,
+            bricks: Bricks::build(density),
             support,
         }
     }
@@ -274,7 +282,7 @@ pub fn march_ray<S: InScatter>(
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
-    let mut sampler = BlockSampler::new(scene.density);
+    let mut sampler = BrickSampler::new(&scene.bricks, scene.density);
     let mut corners = S::Cache::default();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
@@ -289,10 +297,11 @@ pub fn march_ray<S: InScatter>(
             let rho = sampler.sample(p);
             if rho > 0.0 {
                 let tau = sigma_t * rho * step_f32;
-                // e^{−τ} − 1 once: the step's opacity 1 − e^{−τ} without cancellation for thin
-                // steps, and its transmittance.
-                let em1 = (-tau).exp_m1();
-                let (step_tr, opacity) = (1.0 + em1, -em1);
+                // One exp: glibc's expf costs about a third of expm1f (measured: 10 % of the
+                // render's CPU time). The opacity 1 − e^{−τ} loses relative precision only for
+                // τ ≲ 1e-4, where the step adds almost nothing, and Tr still telescopes.
+                let step_tr = (-tau).exp();
+                let opacity = 1.0 - step_tr;
                 if albedo > 0.0 {
                     let [ls_d, ls_i] = scene.source.radiance(p, &mut corners);
                     let c = tr * albedo * opacity;

@@ -63,12 +63,16 @@ pub fn world_bounds(grid: &SparseGrid) -> Option<(Vec3, Vec3)> {
     Some((a.as_vec3(), b.as_vec3()))
 }
 
-/// Wall-clock time of each stage, for `--stats`.
+/// Wall-clock time of each stage and the size of the march's density bricks, for `--stats`.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct RenderTimings {
+pub struct RenderReport {
     pub occupancy: Duration,
     pub relight: Duration,
+    /// Building the density's apron bricks and the radiance cell map.
+    pub bricks: Duration,
     pub march: Duration,
+    /// Bytes held by the apron bricks.
+    pub brick_bytes: usize,
 }
 
 /// Relights `transfer` under the environment `env_coeffs` (RGB SH, windowed and rotated) and
@@ -82,13 +86,14 @@ pub fn render_volume(
     camera: &Camera,
     settings: &MarchSettings,
     progress: &indicatif::ProgressBar,
-) -> (Frame, MarchStats, RenderTimings) {
+) -> (Frame, MarchStats, RenderReport) {
     let t = Instant::now();
     let occupancy = Occupancy::build(density);
     let occupancy_time = t.elapsed();
     let t = Instant::now();
     let radiance = relight(transfer, env_coeffs);
     let relight_time = t.elapsed();
+    let t = Instant::now();
     // Direct light lost to geometric interpolation is partly scattered light instead — when the
     // transfer has any (see `TransferRadiance`).
     let multiple = transfer.f_ms.iter().any(|&v| v != 0.0);
@@ -99,14 +104,17 @@ pub fn render_volume(
     };
     let source = march::TransferRadiance::new(&transfer.layout, &radiance, gap_to_indirect);
     let scene = Scene::new(density, &occupancy, transfer.medium, &source, background);
+    let bricks_time = t.elapsed();
     let t = Instant::now();
     let (frame, stats) = march::render_with_progress(&scene, camera, settings, progress);
-    let timings = RenderTimings {
+    let report = RenderReport {
         occupancy: occupancy_time,
         relight: relight_time,
+        bricks: bricks_time,
         march: t.elapsed(),
+        brick_bytes: scene.bricks.memory_bytes(),
     };
-    (frame, stats, timings)
+    (frame, stats, report)
 }
 
 impl Frame {

@@ -1,5 +1,6 @@
 //! Volumes: the OpenVDB reader and the sparse grid it decodes into.
 
+pub mod bricks;
 pub mod dda;
 pub mod sampler;
 pub mod sparse;

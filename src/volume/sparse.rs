@@ -350,8 +350,9 @@ impl SparseGrid {
     }
 
     /// Trilinear density at an index-space point.
-    /// The reference implementation: eight lookups; rays use the cached
-    /// [`BlockSampler`](crate::volume::sampler::BlockSampler), which gives identical results.
+    /// The reference implementation: eight lookups; marches use the cached
+    /// [`BlockSampler`](crate::volume::sampler::BlockSampler) or the apron
+    /// [`Bricks`](crate::volume::bricks::Bricks), which give identical results.
     pub fn sample_index(&self, p: Vec3) -> f32 {
         let base = p.floor();
         let i0 = base.as_ivec3();

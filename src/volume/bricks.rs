@@ -1,0 +1,233 @@
+//! Apron bricks for the camera march: the trilinear density as plain array indexing.
+//!
+//! A trilinear sample whose lower corner `floor(p)` lies in block B (key = voxel >> 3) reads the
+//! voxels `floor(p) + {0,1}³`, all inside `8B + [0, 8]³`. A *brick* stores exactly those 9³ values
+//! (the block's own 8³ plus a one-voxel apron from its upper neighbours, as NanoVDB-style renderers
+//! do), so a sample costs one hash lookup per block crossed and then eight loads at fixed offsets,
+//! with no per-corner block test. Values come from [`SparseGrid::value`] and blend with
+//! `trilinear`, so a sample is bit-identical to [`SparseGrid::sample_index`].
+//!
+//! **Which blocks.** The blocks within one block of a leaf or an 8³ tile get an entry — the same
+//! 3×3×3 dilation the DDA's spans cover (`volume::dda`), so nearly every sample the march takes
+//! finds one, and their number follows the active leaves. An entry whose eight corner blocks are
+//! one constant (a tile interior, the empty shell above a leaf) keeps just that value — trilinear
+//! of eight equal values is that value exactly — and only the others hold a brick. Every other
+//! block (empty space, the inside or rim of a 128³ tile) goes to the cached [`BlockSampler`].
+
+use glam::{IVec3, Vec3};
+use hashbrown::HashMap;
+use rayon::prelude::*;
+
+use crate::volume::sampler::{floor_to_int, BlockSampler};
+use crate::volume::sparse::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
+
+/// Voxels along a brick edge: a leaf plus the apron it shares with its upper neighbours.
+const BRICK_DIM: usize = LEAF_DIM as usize + 1;
+/// Values in one brick.
+const BRICK_VOXELS: usize = BRICK_DIM * BRICK_DIM * BRICK_DIM;
+/// One brick's values, x-major like a leaf's slots.
+type Brick = [f32; BRICK_VOXELS];
+/// Offset of corner `n` (bits x, y, z as [`corner`]) from a cell's lower corner in a brick.
+const CORNER_OFFSETS: [usize; 8] = {
+    let mut o = [0; 8];
+    let mut n = 0;
+    while n < 8 {
+        o[n] = (n >> 2) * BRICK_DIM * BRICK_DIM + ((n >> 1) & 1) * BRICK_DIM + (n & 1);
+        n += 1;
+    }
+    o
+};
+
+/// What a block's entry holds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Entry {
+    /// Index into [`Bricks::values`].
+    Brick(u32),
+    /// Every sample with its lower corner in this block is this value.
+    Uniform(f32),
+}
+
+/// The bricks of one grid, built once per render and shared by every ray.
+pub struct Bricks {
+    entries: HashMap<IVec3, Entry>,
+    values: Vec<Brick>,
+}
+
+impl Bricks {
+    pub fn build(grid: &SparseGrid) -> Bricks {
+        let sources = grid
+            .leaves()
+            .iter()
+            .map(|l| l.origin)
+            .chain(grid.tiles(TileLevel::Block).map(|(o, _)| o));
+        let mut keys: Vec<IVec3> = sources
+            .flat_map(|o| {
+                let key = o >> LEAF_LOG2 as i32;
+                (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
+            })
+            .collect();
+        // Sorted (x-major, as leaves are stored) so neighbouring bricks sit near each other.
+        keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
+        keys.dedup();
+        // Each entry is independent: built in parallel, then numbered in key order (deterministic).
+        // `Ok` is a uniform value, `Err` a brick.
+        let built: Vec<(IVec3, Result<f32, Box<Brick>>)> = keys
+            .par_iter()
+            .map(|&key| {
+                let blocks: [Block; 8] = std::array::from_fn(|n| grid.block(key + corner(n)));
+                (key, uniform(&blocks).ok_or_else(|| fill(&blocks)))
+            })
+            .collect();
+        let mut entries = HashMap::with_capacity(built.len());
+        let mut values = Vec::with_capacity(built.iter().filter(|(_, b)| b.is_err()).count());
+        for (key, b) in built {
+            let entry = match b {
+                Ok(v) => Entry::Uniform(v),
+                Err(brick) => {
+                    values.push(*brick);
+                    Entry::Brick(values.len() as u32 - 1)
+                }
+            };
+            entries.insert(key, entry);
+        }
+        Bricks { entries, values }
+    }
+
+    /// Bytes held: the brick values and the entry map (key, value and a control byte per slot).
+    pub fn memory_bytes(&self) -> usize {
+        self.values.capacity() * std::mem::size_of::<Brick>()
+            + self.entries.capacity() * (std::mem::size_of::<(IVec3, Entry)>() + 1)
+    }
+}
+
+/// The value of eight blocks that are all the same constant, if they are.
+fn uniform(blocks: &[Block; 8]) -> Option<f32> {
+    let first = match blocks[0] {
+        Block::Constant(v) => v,
+        Block::Leaf(_) => return None,
+    };
+    let same = |b: &Block| matches!(b, Block::Constant(v) if v.to_bits() == first.to_bits());
+    blocks.iter().all(same).then_some(first)
+}
+
+/// The 9³ values `8B + [0, 8]³` from block B and its upper neighbours (`blocks` in [`corner`] order).
+fn fill(blocks: &[Block; 8]) -> Box<Brick> {
+    let mut out = Box::new([0.0; BRICK_VOXELS]);
+    let dim = LEAF_DIM as usize;
+    let mut s = 0;
+    for x in 0..BRICK_DIM {
+        for y in 0..BRICK_DIM {
+            for z in 0..BRICK_DIM {
+                // The apron (coordinate 8) is coordinate 0 of the next block along that axis.
+                let n = ((x / dim) << 2) | ((y / dim) << 1) | (z / dim);
+                out[s] = match blocks[n] {
+                    Block::Leaf(leaf) => leaf.values[((x % dim) * dim + y % dim) * dim + z % dim],
+                    Block::Constant(c) => c,
+                };
+                s += 1;
+            }
+        }
+    }
+    out
+}
+
+/// One ray's sampler over [`Bricks`]: the entry of the last block sampled is kept, so the hash
+/// lookup is paid once per block crossed.
+pub struct BrickSampler<'a> {
+    bricks: &'a Bricks,
+    fallback: BlockSampler<'a>,
+    key: IVec3,
+    entry: Option<Entry>,
+}
+
+impl<'a> BrickSampler<'a> {
+    pub fn new(bricks: &'a Bricks, grid: &'a SparseGrid) -> Self {
+        BrickSampler {
+            bricks,
+            fallback: BlockSampler::new(grid),
+            // No real block key is this far out (keys are voxel >> 3), so the first sample looks up.
+            key: IVec3::MIN,
+            entry: None,
+        }
+    }
+
+    /// Trilinear density at an index-space point, exactly as [`SparseGrid::sample_index`].
+    #[inline]
+    pub fn sample(&mut self, p: Vec3) -> f32 {
+        let i0 = floor_to_int(p);
+        let key = i0 >> LEAF_LOG2;
+        if key != self.key {
+            self.key = key;
+            self.entry = self.bricks.entries.get(&key).copied();
+        }
+        match self.entry {
+            Some(Entry::Brick(b)) => {
+                let brick = &self.bricks.values[b as usize];
+                let l = (i0 & (LEAF_DIM - 1)).as_uvec3();
+                let base = (l.x as usize * BRICK_DIM + l.y as usize) * BRICK_DIM + l.z as usize;
+                let c: [f32; 8] = std::array::from_fn(|n| brick[base + CORNER_OFFSETS[n]]);
+                trilinear(c, p - i0.as_vec3())
+            }
+            Some(Entry::Uniform(v)) => v,
+            None => self.fallback.sample(p),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::sparse::LEAF_VOXELS;
+    use crate::volume::Transform;
+
+    #[test]
+    fn bit_identical_to_sample_index() {
+        // Leaves next to each other, to an 8³ tile, to a 128³ tile and to empty space; a leaf with
+        // inactive voxels; a tile with a different value beside another tile.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        g.insert_tile(TileLevel::Node, IVec3::new(-128, 0, 0), 0.5);
+        g.insert_tile(TileLevel::Block, IVec3::new(8, 0, 0), 2.0);
+        g.insert_tile(TileLevel::Block, IVec3::new(8, 8, 0), 2.0);
+        g.insert_tile(TileLevel::Block, IVec3::new(16, 8, 0), 3.0);
+        let mut values = [0.0; LEAF_VOXELS];
+        for (s, v) in values.iter_mut().enumerate() {
+            *v = (s % 13) as f32 * 0.25;
+        }
+        g.insert_leaf(IVec3::ZERO, [u64::MAX; 8], values);
+        g.insert_leaf(IVec3::new(0, 8, 0), [0xf0f0_f0f0_f0f0_f0f0; 8], values);
+        g.insert_leaf(IVec3::new(-8, 0, 0), [u64::MAX; 8], values);
+        let bricks = Bricks::build(&g);
+        assert!(bricks.memory_bytes() > bricks.values.len() * BRICK_VOXELS * 4);
+        assert!(!bricks.values.is_empty());
+        let mut sampler = BrickSampler::new(&bricks, &g);
+        // A wandering walk that crosses block faces, edges and corners, forwards and backwards.
+        let mut p = Vec3::new(-3.0, -1.5, -2.0);
+        for n in 0..40_000 {
+            let a = n as f32 * 0.013;
+            p += Vec3::new(a.sin(), (1.7 * a).cos(), (0.6 * a).sin()) * 0.37;
+            p = p.clamp(Vec3::splat(-20.0), Vec3::splat(30.0));
+            assert_eq!(
+                sampler.sample(p).to_bits(),
+                g.sample_index(p).to_bits(),
+                "{p}"
+            );
+        }
+    }
+
+    #[test]
+    fn tile_interiors_take_no_brick() {
+        // 3×3×3 tiles of 1: entries for them and a one-block shell (5³ = 125). The 2³ blocks whose
+        // corner blocks are all tiles keep the value 1, the 61 whose corner blocks are all empty
+        // keep 0, and the other 56 a brick.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        for n in 0..27 {
+            let b = IVec3::new(n / 9, (n / 3) % 3, n % 3);
+            g.insert_tile(TileLevel::Block, b * LEAF_DIM, 1.0);
+        }
+        let bricks = Bricks::build(&g);
+        assert_eq!((bricks.entries.len(), bricks.values.len()), (125, 56));
+        assert_eq!(bricks.entries[&IVec3::ONE], Entry::Uniform(1.0));
+        assert!(matches!(bricks.entries[&IVec3::splat(2)], Entry::Brick(_)));
+        assert_eq!(bricks.entries[&IVec3::new(3, 0, -1)], Entry::Uniform(0.0));
+    }
+}
