@@ -253,12 +253,14 @@ fn pathtrace(
     let env = Environment::load(&args.env)?;
     let light = EnvLight::new(&env, args.env_rotate.to_radians(), args.env_scale);
     let occupancy = Occupancy::build(&density);
+    let bricks = crate::volume::bricks::Bricks::build(&density);
     let setup_seconds = clock.elapsed().as_secs_f64();
 
     let camera = spec.camera(world_bounds(&density))?;
     let tracer = PathTracer {
         medium: Medium3d {
             density: &density,
+            bricks: &bricks,
             occupancy: &occupancy,
             sigma_t: medium.sigma_t,
         },

@@ -29,7 +29,7 @@ pub use envlight::EnvLight;
 pub use tracking::{Medium3d, TrackStats};
 
 use crate::render::film::{CameraSample, RayResult};
-use crate::volume::sampler::BlockSampler;
+use crate::volume::bricks::BrickSampler;
 
 /// Scatterings before Russian roulette starts: the first few bounces carry most of the light of
 /// a typical cloud and stay noise-free of roulette.
@@ -99,7 +99,7 @@ impl PathTracer<'_> {
     /// One camera path's estimate of the volume's radiance and transmittance.
     pub fn trace(&self, sample: CameraSample, stats: &mut PathStats) -> RayResult {
         let mut rng = self.rng(&sample);
-        let mut sampler = BlockSampler::new(self.medium.density);
+        let mut sampler = BrickSampler::new(self.medium.bricks, self.medium.density);
         let mut track = TrackStats::default();
         stats.paths += 1;
         let mut out = RayResult::CLEAR;
@@ -126,7 +126,7 @@ impl PathTracer<'_> {
         mut x: Vec3,
         out: &mut RayResult,
         rng: &mut impl Rng,
-        sampler: &mut BlockSampler,
+        sampler: &mut BrickSampler,
         track: &mut TrackStats,
         stats: &mut PathStats,
     ) {
@@ -190,6 +190,7 @@ mod tests {
     use crate::env::Environment;
     use crate::render::camera::{hash_unit, Camera};
     use crate::render::film::{render_frame, Background};
+    use crate::volume::bricks::Bricks;
     use crate::volume::dda::Occupancy;
     use crate::volume::sparse::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
     use glam::IVec3;
@@ -238,10 +239,12 @@ mod tests {
         background: bool,
     ) -> crate::render::Frame {
         let occupancy = Occupancy::build(grid);
+        let bricks = Bricks::build(grid);
         let light = EnvLight::new(env, 0.0, 1.0);
         let tracer = PathTracer {
             medium: Medium3d {
                 density: grid,
+                bricks: &bricks,
                 occupancy: &occupancy,
                 sigma_t,
             },
@@ -292,12 +295,14 @@ mod tests {
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         g.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
         let occupancy = Occupancy::build(&g);
+        let bricks = Bricks::build(&g);
         let env = constant_env(1.0);
         let light = EnvLight::new(&env, 0.0, 1.0);
         let sigma_t = 0.01f32;
         let tracer = PathTracer {
             medium: Medium3d {
                 density: &g,
+                bricks: &bricks,
                 occupancy: &occupancy,
                 sigma_t,
             },

@@ -14,8 +14,8 @@ use std::ops::ControlFlow;
 use glam::{DVec3, Vec3};
 use rand::Rng;
 
+use crate::volume::bricks::{BrickSampler, Bricks};
 use crate::volume::dda::Occupancy;
-use crate::volume::sampler::BlockSampler;
 use crate::volume::SparseGrid;
 
 /// Ratio tracking plays Russian roulette once its estimate falls below this: the shadow ray stops
@@ -26,6 +26,8 @@ const SHADOW_ROULETTE_BELOW: f64 = 0.1;
 /// The density a tracker walks through, and the medium's extinction per unit density.
 pub struct Medium3d<'a> {
     pub density: &'a SparseGrid,
+    /// The density's apron bricks: a lookup is one hash per block and eight loads.
+    pub bricks: &'a Bricks,
     pub occupancy: &'a Occupancy,
     pub sigma_t: f32,
 }
@@ -55,7 +57,7 @@ impl<'a> Medium3d<'a> {
         origin: Vec3,
         dir: Vec3,
         rng: &mut R,
-        sampler: &mut BlockSampler,
+        sampler: &mut BrickSampler,
         stats: &mut TrackStats,
         mut at: impl FnMut(f64, f64, &mut R) -> ControlFlow<()>,
     ) {
@@ -90,7 +92,7 @@ impl<'a> Medium3d<'a> {
         origin: Vec3,
         dir: Vec3,
         rng: &mut impl Rng,
-        sampler: &mut BlockSampler,
+        sampler: &mut BrickSampler,
         stats: &mut TrackStats,
     ) -> Option<f64> {
         let mut hit = None;
@@ -111,7 +113,7 @@ impl<'a> Medium3d<'a> {
         origin: Vec3,
         dir: Vec3,
         rng: &mut impl Rng,
-        sampler: &mut BlockSampler,
+        sampler: &mut BrickSampler,
         stats: &mut TrackStats,
     ) -> f64 {
         let mut tr = 1.0f64;
@@ -158,16 +160,18 @@ mod tests {
         // to infinity is σt·0.5·(127 − 27.5 + 0.5) world units.
         let g = slab(1.0);
         let occupancy = Occupancy::build(&g);
+        let bricks = Bricks::build(&g);
         let sigma_t = 0.04f32;
         let medium = Medium3d {
             density: &g,
+            bricks: &bricks,
             occupancy: &occupancy,
             sigma_t,
         };
         let origin = Vec3::new(13.75, 32.0, 32.0);
         let want = (-(sigma_t as f64) * 0.5 * 100.0).exp();
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(3);
-        let mut sampler = BlockSampler::new(&g);
+        let mut sampler = BrickSampler::new(&bricks, &g);
         let mut stats = TrackStats::default();
         let n = 40_000;
         let (mut escaped, mut ratio) = (0usize, 0.0f64);
@@ -193,13 +197,15 @@ mod tests {
         // the far side, for a medium much thicker than a free path, is ≈ 1/σt.
         let g = slab(2.0);
         let occupancy = Occupancy::build(&g);
+        let bricks = Bricks::build(&g);
         let medium = Medium3d {
             density: &g,
+            bricks: &bricks,
             occupancy: &occupancy,
             sigma_t: 1.0,
         };
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(9);
-        let mut sampler = BlockSampler::new(&g);
+        let mut sampler = BrickSampler::new(&bricks, &g);
         let mut stats = TrackStats::default();
         let origin = Vec3::new(2.0, 32.0, 32.0);
         let n = 20_000;
@@ -223,12 +229,14 @@ mod tests {
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(1);
         let mut stats = TrackStats::default();
         for (grid, occ, sigma_t) in [(&g, &occupancy, 1.0), (&dense, &dense_occ, 0.0)] {
+            let bricks = Bricks::build(grid);
             let medium = Medium3d {
                 density: grid,
+                bricks: &bricks,
                 occupancy: occ,
                 sigma_t,
             };
-            let mut sampler = BlockSampler::new(grid);
+            let mut sampler = BrickSampler::new(&bricks, grid);
             let o = Vec3::new(-10.0, 30.0, 30.0);
             assert_eq!(
                 medium.collide(o, Vec3::X, &mut rng, &mut sampler, &mut stats),
