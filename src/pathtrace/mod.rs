@@ -188,11 +188,11 @@ impl PathTracer<'_> {
 mod tests {
     use super::*;
     use crate::env::Environment;
-    use crate::render::camera::{hash_unit, Camera};
+    use crate::render::camera::Camera;
     use crate::render::film::{render_frame, Background};
     use crate::volume::bricks::Bricks;
     use crate::volume::dda::Occupancy;
-    use crate::volume::sparse::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+    use crate::volume::sparse::{add_hashed_leaves, SparseGrid, TileLevel, Transform};
     use glam::IVec3;
 
     /// A thin 128³ node tile beside 40 leaves of random density up to 3: varied density, empty
@@ -200,21 +200,7 @@ mod tests {
     fn lumpy() -> SparseGrid {
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         g.insert_tile(TileLevel::Node, IVec3::new(128, 0, 0), 0.3);
-        for n in 0..40u32 {
-            let key = IVec3::new(
-                (hash_unit(n, 1, 0, 9) * 14.0) as i32,
-                (hash_unit(n, 2, 0, 9) * 14.0) as i32,
-                (hash_unit(n, 3, 0, 9) * 14.0) as i32,
-            );
-            if g.leaves().iter().any(|l| l.origin == key * 8) {
-                continue;
-            }
-            let mut values = [0.0; LEAF_VOXELS];
-            for (i, v) in values.iter_mut().enumerate() {
-                *v = hash_unit(n, i as u32, 4, 9) * 3.0;
-            }
-            g.insert_leaf(key * 8, [u64::MAX; 8], values);
-        }
+        add_hashed_leaves(&mut g, 40);
         g
     }
 

@@ -373,7 +373,7 @@ pub fn render_with_progress<S: InScatter>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::sparse::{TileLevel, LEAF_VOXELS};
+    use crate::volume::sparse::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
     use crate::volume::Transform;
     use glam::IVec3;
 
@@ -607,21 +607,7 @@ mod tests {
         let mut g = SparseGrid::new(anisotropic(), 0.0);
         g.insert_tile(TileLevel::Node, IVec3::new(128, 0, 0), 0.4);
         g.insert_tile(TileLevel::Block, IVec3::new(40, 80, 40), 1.5);
-        for n in 0..60u32 {
-            let key = IVec3::new(
-                (hash_unit(n, 1, 0, 9) * 14.0) as i32,
-                (hash_unit(n, 2, 0, 9) * 14.0) as i32,
-                (hash_unit(n, 3, 0, 9) * 14.0) as i32,
-            );
-            if g.leaves().iter().any(|l| l.origin == key * 8) {
-                continue;
-            }
-            let mut values = [0.0; LEAF_VOXELS];
-            for (s, v) in values.iter_mut().enumerate() {
-                *v = hash_unit(n, s as u32, 4, 9) * 3.0;
-            }
-            g.insert_leaf(key * 8, [u64::MAX; 8], values);
-        }
+        add_hashed_leaves(&mut g, 60);
         g
     }
 

@@ -389,6 +389,28 @@ pub(crate) fn trilinear(c: [f32; 8], f: Vec3) -> f32 {
     lerp(lerp(x00, x10, f.y), lerp(x01, x11, f.y), f.z)
 }
 
+/// Adds `count` leaves of hashed density (0 to 3) at hashed block positions in [0, 112)³, skipping
+/// repeats: a sparse, cloud-like test grid with gaps between leaves.
+#[cfg(test)]
+pub fn add_hashed_leaves(g: &mut SparseGrid, count: u32) {
+    use crate::render::camera::hash_unit;
+    for n in 0..count {
+        let key = IVec3::new(
+            (hash_unit(n, 1, 0, 9) * 14.0) as i32,
+            (hash_unit(n, 2, 0, 9) * 14.0) as i32,
+            (hash_unit(n, 3, 0, 9) * 14.0) as i32,
+        );
+        if g.leaves().iter().any(|l| l.origin == key * 8) {
+            continue;
+        }
+        let mut values = [0.0; LEAF_VOXELS];
+        for (i, v) in values.iter_mut().enumerate() {
+            *v = hash_unit(n, i as u32, 4, 9) * 3.0;
+        }
+        g.insert_leaf(key * 8, [u64::MAX; 8], values);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
