@@ -64,10 +64,14 @@ def name(*parts):
     return "_".join(str(p) for p in parts).replace(".", "p")
 
 
+def transfer_exr(fx, env, albedo, sigma_t, single, extra):
+    tag = name(fx, env, albedo, sigma_t, "single" if single else "multi", *extra)
+    return OUT / f"tr_{tag}.exr"
+
+
 def transfer(fx, env, albedo, sigma_t, single=False, extra=(), png=False):
     """A transfer render (bake included): (exr path, wall seconds)."""
-    tag = name(fx, env, albedo, sigma_t, "single" if single else "multi", *extra)
-    exr = OUT / f"tr_{tag}.exr"
+    exr = transfer_exr(fx, env, albedo, sigma_t, single, extra)
     args = ["render", *scene(fx, env, albedo, sigma_t), "-o", str(exr), "--spp", str(TSPP), *extra]
     if single:
         args.append("--single-scatter")
@@ -125,8 +129,26 @@ def time_to(noise, seconds):
     return seconds * (noise / NOISE_TARGET) ** 2
 
 
+def measure(fx, env, albedo, sigma_t, extra=(), png=False, diff=None):
+    """Transfer (single and multiple) against the path tracer on one scene: (single comparison,
+    multiple comparison, transfer seconds, path tracer seconds to 2 % noise)."""
+    s1, s2, _, _ = reference(fx, env, albedo, sigma_t, 1)
+    m1, m2, pt_s, pt_noise = reference(fx, env, albedo, sigma_t, 0, png=png)
+    ts, _ = transfer(fx, env, albedo, sigma_t, single=True, extra=tuple(extra))
+    tm, tm_s = transfer(fx, env, albedo, sigma_t, extra=tuple(extra), png=png)
+    return compare(ts, s1, s2), compare(tm, m1, m2, diff), tm_s, time_to(pt_noise, pt_s)
+
+
 def pct(x):
     return f"{100 * x:.1f} %"
+
+
+def err(c):
+    """A comparison's error, or "< noise" where the reference's own noise hides it (the
+    subtraction of a noise larger than the error says only that the error is smaller)."""
+    if c["relative_rmse"] < c["reference_noise"]:
+        return f"< {pct(c['reference_noise'])}"
+    return pct(c["relative_rmse"])
 
 
 def mean_density(fx):
@@ -147,7 +169,8 @@ def main_table(lines):
         "Relative RMSE over the volume's pixels, the path tracer's noise subtracted (its two seeds "
         f"averaged, {SPP} spp each). *single*: `--single-scatter` against `--max-bounces 1`; "
         "*multiple*: the defaults against the unlimited path tracer; *bias*: mean(transfer)/mean(path "
-        "tracer) − 1 of the multiple-scattering image. *transfer s*: bake + render of the multiple-"
+        "tracer) − 1 of the multiple-scattering image; \"< n %\": below the path tracer's own noise n, "
+        "which hides it. *transfer s*: bake + render of the multiple-"
         "scattering image, wall; *path tracer s to 2 %*: trace time extrapolated to 2 % noise "
         "(noise ∝ 1/√spp).",
         "",
@@ -160,20 +183,17 @@ def main_table(lines):
         for env in ENVS:
             for albedo in ALBEDOS:
                 show = (fx, env, albedo) in shown
-                s1, s2, _, _ = reference(fx, env, albedo, SIGMA_T, 1)
-                m1, m2, pt_s, pt_noise = reference(fx, env, albedo, SIGMA_T, 0, png=show)
-                ts, _ = transfer(fx, env, albedo, SIGMA_T, single=True)
-                tm, tm_s = transfer(fx, env, albedo, SIGMA_T, png=show)
                 diff = OUT / f"diff_{name(fx, env, albedo)}.png" if show else None
-                single = compare(ts, s1, s2)
-                multi = compare(tm, m1, m2, diff)
+                single, multi, tm_s, pt_s = measure(fx, env, albedo, SIGMA_T, png=show, diff=diff)
                 lines.append(
-                    f"| {fx} | {env} | {albedo} | {pct(single['relative_rmse'])} | "
-                    f"{pct(multi['relative_rmse'])} | {multi['relative_bias'] * 100:+.1f} % | "
-                    f"{pct(multi['reference_noise'])} | {tm_s:.1f} | {time_to(pt_noise, pt_s):.0f} |")
+                    f"| {fx} | {env} | {albedo} | {err(single)} | "
+                    f"{err(multi)} | {multi['relative_bias'] * 100:+.1f} % | "
+                    f"{pct(multi['reference_noise'])} | {tm_s:.1f} | {pt_s:.0f} |")
                 print(lines[-1], flush=True)
                 if show:
-                    images.append((fx, env, albedo, tm.with_suffix(".png"), m1.with_suffix(".png"), diff))
+                    tr_png = transfer_exr(fx, env, albedo, SIGMA_T, False, ()).with_suffix(".png")
+                    pt_png = REFERENCES[(fx, env, albedo, SIGMA_T, 0)][0].with_suffix(".png")
+                    images.append((fx, env, albedo, tr_png, pt_png, diff))
     return images
 
 
@@ -191,13 +211,9 @@ def sweep(lines):
         rho = mean_density(fx)
         for tau in SWEEP_TAU:
             sigma_t = round(tau / (K * rho), 4)
-            s1, s2, _, _ = reference(fx, "studio", 0.9, sigma_t, 1)
-            m1, m2, _, _ = reference(fx, "studio", 0.9, sigma_t, 0)
-            ts, _ = transfer(fx, "studio", 0.9, sigma_t, single=True)
-            tm, _ = transfer(fx, "studio", 0.9, sigma_t)
-            single, multi = compare(ts, s1, s2), compare(tm, m1, m2)
-            lines.append(f"| {fx} | {tau} | {sigma_t} | {pct(single['relative_rmse'])} | "
-                         f"{pct(multi['relative_rmse'])} | {multi['relative_bias'] * 100:+.1f} % |")
+            single, multi, _, _ = measure(fx, "studio", 0.9, sigma_t)
+            lines.append(f"| {fx} | {tau} | {sigma_t} | {err(single)} | "
+                         f"{err(multi)} | {multi['relative_bias'] * 100:+.1f} % |")
             print(lines[-1], flush=True)
 
 
@@ -217,15 +233,11 @@ def settings(lines):
                 ["--samples", "256"], ["--samples", "1024"], ["--window", "hamming"]]
     for fx in FIXTURES:
         for env in ["studio", "sky_sun"]:
-            s1, s2, _, _ = reference(fx, env, 0.9, SIGMA_T, 1)
-            m1, m2, _, _ = reference(fx, env, 0.9, SIGMA_T, 0)
             for extra in variants:
-                tm, tm_s = transfer(fx, env, 0.9, SIGMA_T, extra=tuple(extra))
-                ts, _ = transfer(fx, env, 0.9, SIGMA_T, single=True, extra=tuple(extra))
-                multi, single = compare(tm, m1, m2), compare(ts, s1, s2)
+                single, multi, tm_s, _ = measure(fx, env, 0.9, SIGMA_T, extra)
                 label = " ".join(extra) or "defaults"
-                lines.append(f"| {fx} | {env} | {label} | {pct(multi['relative_rmse'])} | "
-                             f"{pct(single['relative_rmse'])} | {tm_s:.1f} |")
+                lines.append(f"| {fx} | {env} | {label} | {err(multi)} | "
+                             f"{err(single)} | {tm_s:.1f} |")
                 print(lines[-1], flush=True)
 
 
@@ -238,12 +250,8 @@ def defaults_sky(lines):
         "|---|---|---|---|---|",
     ]
     for fx in FIXTURES:
-        s1, s2, _, _ = reference(fx, "sky", 0.9, 1.0, 1)
-        m1, m2, _, _ = reference(fx, "sky", 0.9, 1.0, 0)
-        ts, _ = transfer(fx, "sky", 0.9, 1.0, single=True)
-        tm, _ = transfer(fx, "sky", 0.9, 1.0)
-        single, multi = compare(ts, s1, s2), compare(tm, m1, m2, OUT / f"diff_{fx}_sky_default.png")
-        lines.append(f"| {fx} | {pct(single['relative_rmse'])} | {pct(multi['relative_rmse'])} | "
+        single, multi, _, _ = measure(fx, "sky", 0.9, 1.0)
+        lines.append(f"| {fx} | {err(single)} | {err(multi)} | "
                      f"{multi['relative_bias'] * 100:+.1f} % | {pct(multi['reference_noise'])} |")
         print(lines[-1], flush=True)
 
