@@ -77,12 +77,15 @@ pub fn bake_checked(
         )
     };
     let plan = estimate(&config.settings, layout.len());
-    if !global.quiet {
-        if let Some(warning) = resolution_warning(density, config) {
+    // Said before a dry run's estimate and before a real bake, not before a refusal: an error
+    // stays one line.
+    let warn = || {
+        if let Some(warning) = resolution_warning(density, config).filter(|_| !global.quiet) {
             eprintln!("vscatter: warning: {warning}");
         }
-    }
+    };
     if config.dry_run {
+        warn();
         println!(
             "{} transfer voxels in {} tiles; estimated peak memory {} (density {}, transfer {}, working {})",
             layout.len(),
@@ -124,6 +127,7 @@ pub fn bake_checked(
         )));
     }
     drop(layout);
+    warn();
     Ok(Some(transfer::bake(
         density,
         config.medium,
