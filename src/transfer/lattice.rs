@@ -215,7 +215,7 @@ fn build_links(
     layout: &TransferLayout,
     medium: Medium,
     dirs: Directions,
-    coeffs: usize,
+    bands: usize,
 ) -> Links {
     let n = layout.len();
     let d = dirs.len();
@@ -237,7 +237,7 @@ fn build_links(
         emit_out: vec![0.0; n * d],
         read_emit: vec![0.0; n * d],
         order: Vec::with_capacity(d),
-        inflow: inflow(&dirs, &lengths, coeffs),
+        inflow: inflow(&dirs, &lengths, bands),
         dirs,
     };
     let dirs = &links.dirs;
@@ -313,10 +313,8 @@ const INFLOW_QUADRATURE: usize = 1 << 16;
 /// The environment's flux into each lattice line, `D × coeffs` (module doc, "Source"):
 /// P_ij = 4π·w_j·ȳ_ij/ℓ_j, ȳ_ij the mean of y_i over the directions nearer −d_j than any other
 /// lattice direction. The mean of y₀ is exactly 1/√(4π), so the DC inflow is exact.
-fn inflow(dirs: &Directions, lengths: &[f32], coeffs: usize) -> Vec<f32> {
-    let bands = (1..=crate::sh::MAX_BANDS)
-        .find(|b| b * b == coeffs)
-        .expect("coefficient count is a square");
+fn inflow(dirs: &Directions, lengths: &[f32], bands: usize) -> Vec<f32> {
+    let coeffs = bands * bands;
     let units: Vec<Vec3> = dirs
         .offsets
         .iter()
@@ -439,7 +437,7 @@ fn transport_chunk(
     width: usize,
     generations: Option<usize>,
 ) -> (Vec<f32>, LatticeStats) {
-    let (coeffs, albedo) = (first.coeffs, first.medium.albedo);
+    let (coeffs, albedo) = (first.bands * first.bands, first.medium.albedo);
     let n = links.order[0].len();
     let d = links.dirs.len();
     let mut fluence = vec![0f32; n * width];
@@ -520,11 +518,12 @@ fn transport_chunk(
     (fluence, stats)
 }
 
-/// What the lattice works with: the medium, the coefficient count, and T_ri (only to weigh the
+/// What the lattice works with: the medium, the SH band count, and T_ri (only to weigh the
 /// remaining energy against the total; the lattice's source is the environment, module doc).
 pub struct Source<'a> {
     pub t_ri: &'a [f32],
-    pub coeffs: usize,
+    /// `bands²` coefficients per voxel.
+    pub bands: usize,
     pub medium: Medium,
 }
 
@@ -535,9 +534,9 @@ pub fn bake_multiple(
     kind: LatticeKind,
     first: &Source,
 ) -> (Vec<f32>, LatticeStats) {
-    let (medium, coeffs) = (first.medium, first.coeffs);
+    let (medium, coeffs) = (first.medium, first.bands * first.bands);
     let dirs = Directions::new(kind);
-    let links = build_links(density, layout, medium, dirs, coeffs);
+    let links = build_links(density, layout, medium, dirs, first.bands);
     let n = layout.len();
     let chunks: Vec<(usize, usize)> = (0..coeffs)
         .step_by(CHUNK)
@@ -631,7 +630,7 @@ mod tests {
             .iter()
             .map(|d| 2.0 * d.as_vec3().length())
             .collect();
-        let flux = inflow(&dirs, &lengths, coeffs);
+        let flux = inflow(&dirs, &lengths, bands);
         for c in 0..coeffs {
             let total: f32 = (0..dirs.len())
                 .map(|j| flux[j * coeffs + c] * lengths[j])

@@ -83,7 +83,6 @@ pub fn bake(
     stats.layout_seconds = clock.elapsed().as_secs_f64();
     stats.transfer_voxels = layout.len();
     stats.transfer_tiles = layout.tile_count();
-    let coeffs = settings.bands * settings.bands;
 
     let clock = std::time::Instant::now();
     let bar = crate::progress::bar(layout.len() as u64, "single", quiet);
@@ -103,7 +102,7 @@ pub fn bake(
         false => {
             let first = lattice::Source {
                 t_ri: &t_ri,
-                coeffs,
+                bands: settings.bands,
                 medium,
             };
             let (f_ms, lattice_stats) =
