@@ -72,13 +72,13 @@ def transfer_exr(fx, env, albedo, sigma_t, single, extra):
 def transfer(fx, env, albedo, sigma_t, single=False, extra=(), png=False):
     """A transfer render (bake included): (exr path, wall seconds)."""
     exr = transfer_exr(fx, env, albedo, sigma_t, single, extra)
-    args = ["render", *scene(fx, env, albedo, sigma_t), "-o", str(exr), "--spp", str(TSPP), *extra]
-    if single:
-        args.append("--single-scatter")
-    _, wall = run(args)
+    flags = ["--spp", str(TSPP), *extra] + (["--single-scatter"] if single else [])
+    # The picture reuses the bake (--cache) instead of baking again.
+    keep = ["--cache", str(exr.with_suffix(".vtc"))] if png else []
+    _, wall = run(["render", *scene(fx, env, albedo, sigma_t), "-o", str(exr), *flags, *keep])
     if png:
         run(["render", *scene(fx, env, albedo, sigma_t), "-o", str(exr.with_suffix(".png")),
-             "--spp", str(TSPP), *extra] + (["--single-scatter"] if single else []))
+             *flags, *keep])
     return exr, wall
 
 
