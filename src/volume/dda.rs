@@ -4,17 +4,22 @@
 //! whole empty 128³ nodes at the coarse level and empty blocks at the fine level, with the largest
 //! density each span can see (a majorant).
 //!
-//! **Dilation.** A trilinear sample at p reads the voxels floor(p) + {0,1}³, so a point of block B
-//! can see density stored in a neighbouring block. Block B therefore counts as occupied when any
-//! block of its 3×3×3 neighbourhood holds density. The one-sided {0,1}³ neighbourhood would be
-//! enough in exact arithmetic; the full 3×3×3 one also covers every point within one voxel of B,
-//! so a sample whose position rounds across a block face is never wrongly skipped — which is what
-//! makes "skipping changes nothing" hold bit for bit.
+//! **Dilation.** A trilinear sample at p reads the voxels floor(p) + {0,1}³, so it can be positive
+//! only when p lies within one voxel of a voxel holding density: inside the box (lo − 1, hi + 1)
+//! around the positive voxels [lo, hi]. One more voxel of slack, [lo − 2, hi + 2], covers a
+//! sample whose f32 position rounds across the box's face, so a skipped step always reads
+//! density ≤ 0 and adds nothing — which is what makes "skipping changes nothing" hold bit for bit.
+//! Only voxels above 0 count: a trilinear blend of values ≤ 0 is ≤ 0, which the march and the
+//! trackers treat as empty.
 //!
-//! **Levels.** Leaves and block tiles are dilated into a block map. A 128³ node tile marks its node
-//! dense (no block lookups inside) and its one-block shell into the block map. A root tile (4096³)
-//! marks itself dense and the ring of nodes around it dense: its block shell would be 1.5 million
-//! entries, and root tiles are rare, so up to one node of empty space beside it is marched instead.
+//! **Levels.** Each leaf (the box of its positive voxels) and block tile, dilated, marks the blocks
+//! it overlaps with the overlapping part (a sub-box of the 8³ block), so a ray walks only the few
+//! voxels beside a leaf instead of whole neighbouring blocks: measured on the cloud fixture, 60 %
+//! of the steps of a whole-block dilation read zero density. A 128³ node tile marks its node
+//! dense (no block lookups inside) and its dilation into the blocks of its one-block shell. A root
+//! tile (4096³) marks itself dense and the ring of nodes around it dense: its block shell would be
+//! 1.5 million entries, and root tiles are rare, so up to one node of empty space beside it is
+//! marched instead.
 //!
 //! Cells cover half-open index intervals: block b spans [8b, 8b+8), as `floor` in sampling does.
 
@@ -23,7 +28,7 @@ use std::ops::ControlFlow;
 use glam::{DVec3, IVec3};
 use hashbrown::HashMap;
 
-use crate::volume::sparse::{SparseGrid, TileLevel, LEAF_LOG2};
+use crate::volume::sparse::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
 const NODE_LOG2: i32 = 7;
@@ -41,6 +46,34 @@ pub struct Span {
     pub max_density: f32,
 }
 
+/// Voxels of slack around the trilinear support of positive voxels (see the module doc).
+const DILATION: i32 = 2;
+
+/// An occupied block: the largest density its samples can see, and the part of it where they can
+/// be positive, as voxel offsets `[lo, hi]` within the block (0..=8 on each axis).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct BlockCell {
+    max: f32,
+    lo: [u8; 3],
+    hi: [u8; 3],
+}
+
+impl BlockCell {
+    const FULL_LO: [u8; 3] = [0; 3];
+    const FULL_HI: [u8; 3] = [LEAF_DIM as u8; 3];
+
+    fn is_full(&self) -> bool {
+        self.lo == Self::FULL_LO && self.hi == Self::FULL_HI
+    }
+
+    /// The occupied part of block `key` in index space.
+    fn bounds(&self, key: IVec3) -> (DVec3, DVec3) {
+        let origin = (key << LEAF_LOG2 as i32).as_dvec3();
+        let v = |a: [u8; 3]| DVec3::new(a[0] as f64, a[1] as f64, a[2] as f64);
+        (origin + v(self.lo), origin + v(self.hi))
+    }
+}
+
 /// What the coarse level knows about a 128³ node.
 #[derive(Debug, Clone, Copy)]
 enum NodeCell {
@@ -52,8 +85,8 @@ enum NodeCell {
 
 /// The dilated occupancy of a grid, built once and shared by every ray.
 pub struct Occupancy {
-    /// Occupied blocks (key = voxel >> 3) of partial nodes, with their dilated maximum.
-    blocks: HashMap<IVec3, f32>,
+    /// Occupied blocks (key = voxel >> 3) of partial nodes, with their dilated maximum and part.
+    blocks: HashMap<IVec3, BlockCell>,
     /// Nodes (key = voxel >> 7) that hold any occupied block.
     nodes: HashMap<IVec3, NodeCell>,
     /// Root tiles (key = voxel >> 12): every node inside is dense; the value bounds the density of
@@ -68,8 +101,52 @@ fn raise(map: &mut HashMap<IVec3, f32>, key: IVec3, value: f32) {
     *m = m.max(value);
 }
 
-fn neighbourhood(key: IVec3) -> impl Iterator<Item = IVec3> {
-    (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
+/// Marks the part of block `key` inside the index box `[lo, hi]` (voxel corners) as occupied up to
+/// `value`, growing what is already marked there; a block the box misses is left alone.
+fn mark(blocks: &mut HashMap<IVec3, BlockCell>, key: IVec3, lo: IVec3, hi: IVec3, value: f32) {
+    let origin = key << LEAF_LOG2 as i32;
+    let a = (lo - origin).max(IVec3::ZERO);
+    let b = (hi - origin).min(IVec3::splat(LEAF_DIM));
+    if a.cmpge(b).any() {
+        return;
+    }
+    let (a, b) = (a.to_array().map(|v| v as u8), b.to_array().map(|v| v as u8));
+    let cell = blocks.entry(key).or_insert(BlockCell {
+        max: value,
+        lo: a,
+        hi: b,
+    });
+    cell.max = cell.max.max(value);
+    for i in 0..3 {
+        cell.lo[i] = cell.lo[i].min(a[i]);
+        cell.hi[i] = cell.hi[i].max(b[i]);
+    }
+}
+
+/// Marks every block the index box `[lo, hi]` overlaps (`hi` inclusive of voxel `hi − 1` only:
+/// the box's far corner).
+fn mark_box(blocks: &mut HashMap<IVec3, BlockCell>, lo: IVec3, hi: IVec3, value: f32) {
+    let (klo, khi) = (lo >> LEAF_LOG2 as i32, (hi - 1) >> LEAF_LOG2 as i32);
+    for x in klo.x..=khi.x {
+        for y in klo.y..=khi.y {
+            for z in klo.z..=khi.z {
+                mark(blocks, IVec3::new(x, y, z), lo, hi, value);
+            }
+        }
+    }
+}
+
+/// The voxels of `leaf` above 0, as an inclusive index box; `None` when there are none.
+fn positive_box(leaf: &Leaf) -> Option<(IVec3, IVec3)> {
+    let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
+    for (slot, &v) in leaf.values.iter().enumerate() {
+        if v > 0.0 {
+            let ijk = leaf.origin + slot_offset(slot);
+            lo = lo.min(ijk);
+            hi = hi.max(ijk);
+        }
+    }
+    (lo.x <= hi.x).then_some((lo, hi))
 }
 
 /// The cells of the box `[lo − 1, hi + 1]` that lie outside `[lo, hi]`.
@@ -87,15 +164,20 @@ fn shell(lo: IVec3, hi: IVec3) -> impl Iterator<Item = IVec3> {
 impl Occupancy {
     pub fn build(grid: &SparseGrid) -> Occupancy {
         let mut blocks = HashMap::new();
-        let leaves = grid
+        // Positive voxels as inclusive boxes, with their maximum.
+        let boxes = grid
             .leaves()
             .iter()
-            .map(|l| (l.origin, l.max))
-            .chain(grid.tiles(TileLevel::Block));
-        for (origin, max) in leaves {
-            if max > 0.0 {
-                neighbourhood(origin >> LEAF_LOG2).for_each(|b| raise(&mut blocks, b, max));
-            }
+            .filter(|l| l.max > 0.0)
+            .filter_map(|l| positive_box(l).map(|(lo, hi)| (lo, hi, l.max)))
+            .chain(
+                grid.tiles(TileLevel::Block)
+                    .filter(|&(_, v)| v > 0.0)
+                    .map(|(o, v)| (o, o + IVec3::splat(LEAF_DIM - 1), v)),
+            );
+        for (lo, hi, max) in boxes {
+            let d = IVec3::splat(DILATION);
+            mark_box(&mut blocks, lo - d, hi + d, max);
         }
         let mut dense: HashMap<IVec3, f32> = HashMap::new();
         for (origin, value) in grid.tiles(TileLevel::Node) {
@@ -104,7 +186,11 @@ impl Occupancy {
                 raise(&mut dense, node, value);
                 let lo = node << BLOCKS_PER_NODE_LOG2;
                 let hi = lo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
-                shell(lo, hi).for_each(|b| raise(&mut blocks, b, value));
+                let (vlo, vhi) = (
+                    origin - DILATION,
+                    origin + ((1 << NODE_LOG2) - 1) + DILATION,
+                );
+                shell(lo, hi).for_each(|b| mark(&mut blocks, b, vlo, vhi, value));
             }
         }
         let mut roots = HashMap::new();
@@ -118,15 +204,15 @@ impl Occupancy {
             }
         }
         // A dense node bounds the dilated blocks inside it; a root tile bounds everything inside.
-        for (&b, &v) in &blocks {
+        for (&b, c) in &blocks {
             if let Some(d) = dense.get_mut(&(b >> BLOCKS_PER_NODE_LOG2)) {
-                *d = d.max(v);
+                *d = d.max(c.max);
             }
         }
         let root_of = |n: IVec3| n >> NODES_PER_ROOT_LOG2;
         let mut root_raise: Vec<(IVec3, f32)> = Vec::new();
-        for (&b, &v) in &blocks {
-            root_raise.push((root_of(b >> BLOCKS_PER_NODE_LOG2), v));
+        for (&b, c) in &blocks {
+            root_raise.push((root_of(b >> BLOCKS_PER_NODE_LOG2), c.max));
         }
         for (&n, &v) in &dense {
             root_raise.push((root_of(n), v));
@@ -146,14 +232,16 @@ impl Occupancy {
         // Bounds: every occupied cell (root interiors are enclosed by their dense ring nodes).
         let mut lo = DVec3::INFINITY;
         let mut hi = DVec3::NEG_INFINITY;
-        let mut cover = |key: IVec3, log2: i32| {
-            let size = (1i64 << log2) as f64;
-            let a = key.as_dvec3() * size;
+        let mut cover = |(a, b): (DVec3, DVec3)| {
             lo = lo.min(a);
-            hi = hi.max(a + size);
+            hi = hi.max(b);
         };
-        blocks.keys().for_each(|&b| cover(b, LEAF_LOG2 as i32));
-        dense.keys().for_each(|&n| cover(n, NODE_LOG2));
+        blocks.iter().for_each(|(&b, c)| cover(c.bounds(b)));
+        dense.keys().for_each(|&n| {
+            let size = (1i64 << NODE_LOG2) as f64;
+            let a = n.as_dvec3() * size;
+            cover((a, a + size));
+        });
         let bounds = (lo.x <= hi.x).then_some((lo, hi));
         Occupancy {
             blocks,
@@ -224,22 +312,31 @@ impl Occupancy {
                     let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
                     let b_log2 = LEAF_LOG2 as i32;
                     walk(origin, dir, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
-                        match self.blocks.get(&b) {
-                            Some(&m) => extend(&mut pending, tc, td, m, split, &mut f)?,
-                            None => {
-                                if let Some(s) = pending.take() {
-                                    f(s)?;
+                        let part = match self.blocks.get(&b) {
+                            Some(c) if c.is_full() => Some((tc, td, c.max)),
+                            Some(c) => {
+                                let (lo, hi) = c.bounds(b);
+                                clip_to_box(origin, dir, tc, td, lo, hi).map(|(a, b)| (a, b, c.max))
+                            }
+                            None => None,
+                        };
+                        match part {
+                            Some((a, b, m)) => {
+                                // Empty space before or after the occupied part ends the span.
+                                if a > tc {
+                                    close(&mut pending, &mut f)?;
+                                }
+                                extend(&mut pending, a, b, m, split, &mut f)?;
+                                if b < td {
+                                    close(&mut pending, &mut f)?;
                                 }
                             }
+                            None => close(&mut pending, &mut f)?,
                         }
                         ControlFlow::Continue(())
                     })?;
                 }
-                None => {
-                    if let Some(s) = pending.take() {
-                        f(s)?;
-                    }
-                }
+                None => close(&mut pending, &mut f)?,
             }
             ControlFlow::Continue(())
         });
@@ -258,6 +355,17 @@ impl Occupancy {
             ControlFlow::Continue(())
         });
         out
+    }
+}
+
+/// Hands the open span, if any, to `f`: the ray has met empty space.
+fn close(
+    pending: &mut Option<Span>,
+    f: &mut impl FnMut(Span) -> ControlFlow<()>,
+) -> ControlFlow<()> {
+    match pending.take() {
+        Some(s) => f(s),
+        None => ControlFlow::Continue(()),
     }
 }
 
@@ -381,14 +489,19 @@ mod tests {
 
     const EPS: f64 = 1e-5;
 
-    /// A leaf at `origin` with one active voxel of value `v` at its first slot.
-    fn add_leaf(g: &mut SparseGrid, origin: IVec3, v: f32) {
+    /// A leaf holding one active voxel `ijk` of value `v`.
+    fn add_voxel(g: &mut SparseGrid, ijk: IVec3, v: f32) {
         let mut mask = [0u64; 8];
         let mut values = [0.0; LEAF_VOXELS];
-        let s = Leaf::slot(origin + IVec3::new(3, 3, 3));
+        let s = Leaf::slot(ijk);
         mask[s >> 6] |= 1 << (s & 63);
         values[s] = v;
-        g.insert_leaf(origin, mask, values);
+        g.insert_leaf(ijk & !(LEAF_DIM - 1), mask, values);
+    }
+
+    /// A leaf at `origin` with one active voxel of value `v` at `origin + (3, 3, 3)`.
+    fn add_leaf(g: &mut SparseGrid, origin: IVec3, v: f32) {
+        add_voxel(g, origin + IVec3::splat(3), v);
     }
 
     fn grid() -> SparseGrid {
@@ -415,15 +528,43 @@ mod tests {
         let mut g = grid();
         add_leaf(&mut g, IVec3::ZERO, 0.7);
         let occ = Occupancy::build(&g);
-        // Dilated: blocks −1..=1 on each axis, index [−8, 16)³; the ray enters at x = −8.
+        // Voxel 3 is seen by samples in (2, 4); with the slack, [1, 5] on each axis.
         let s = occ.spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
-        check(&s, &[(12.0, 36.0, 0.7)]);
+        check(&s, &[(21.0, 25.0, 0.7)]);
         // Backwards, and the same ray cut short by t1.
-        let s = occ.spans(dv(40.0, 3.5, 3.5), -DVec3::X, 0.0, 30.0);
-        check(&s, &[(24.0, 30.0, 0.7)]);
+        let s = occ.spans(dv(40.0, 3.5, 3.5), -DVec3::X, 0.0, 37.0);
+        check(&s, &[(35.0, 37.0, 0.7)]);
         // Parameter scaled by a non-unit direction.
         let s = occ.spans(dv(-20.0, 3.5, 3.5), dv(2.0, 0.0, 0.0), 0.0, 100.0);
-        check(&s, &[(6.0, 18.0, 0.7)]);
+        check(&s, &[(10.5, 12.5, 0.7)]);
+        // Beside the voxel's support: y = 5.5 is past [1, 5], though inside the leaf's block.
+        assert!(occ
+            .spans(dv(-20.0, 5.5, 3.5), DVec3::X, 0.0, 100.0)
+            .is_empty());
+    }
+
+    #[test]
+    fn a_leaf_part_is_the_box_of_its_positive_voxels() {
+        // Two positive voxels and a negative one: the part is [2, 6] × [1, 5] × [1, 7] around the
+        // positive ones, the negative voxel (x = 6) adds nothing.
+        let mut g = grid();
+        let mut mask = [0u64; 8];
+        let mut values = [0.0; LEAF_VOXELS];
+        for (ijk, v) in [((4, 3, 3), 1.0), ((4, 3, 5), 0.5), ((6, 3, 3), -2.0)] {
+            let s = Leaf::slot(IVec3::from(ijk));
+            mask[s >> 6] |= 1 << (s & 63);
+            values[s] = v;
+        }
+        g.insert_leaf(IVec3::ZERO, mask, values);
+        let occ = Occupancy::build(&g);
+        check(
+            &occ.spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0),
+            &[(22.0, 26.0, 1.0)],
+        );
+        check(
+            &occ.spans(dv(4.5, 3.5, -10.0), DVec3::Z, 0.0, 100.0),
+            &[(11.0, 17.0, 1.0)],
+        );
     }
 
     #[test]
@@ -432,24 +573,25 @@ mod tests {
         add_leaf(&mut g, IVec3::ZERO, 0.5);
         add_leaf(&mut g, IVec3::new(32, 0, 0), 2.0);
         let occ = Occupancy::build(&g);
-        // [−8, 16) and [24, 48): block 2 ([16, 24)) is beyond both dilations.
+        // [1, 5] and [33, 37].
         let s = occ.spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
-        check(&s, &[(12.0, 36.0, 0.5), (44.0, 68.0, 2.0)]);
-        // Leaves in blocks 0 and 3: dilations [−8, 16) and [16, 40) touch and merge into one span.
+        check(&s, &[(21.0, 25.0, 0.5), (53.0, 57.0, 2.0)]);
+        // Voxels 6 and 10 in neighbouring blocks: parts [4, 8] and [8, 12] touch on the block
+        // face and merge into one span.
         let mut g = grid();
-        add_leaf(&mut g, IVec3::ZERO, 0.5);
-        add_leaf(&mut g, IVec3::new(24, 0, 0), 2.0);
+        add_voxel(&mut g, IVec3::new(6, 3, 3), 0.5);
+        add_voxel(&mut g, IVec3::new(10, 3, 3), 2.0);
         let s = Occupancy::build(&g).spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
-        check(&s, &[(12.0, 60.0, 2.0)]);
+        check(&s, &[(24.0, 32.0, 2.0)]);
     }
 
     #[test]
     fn leaf_dilation_crosses_a_node_face() {
         let mut g = grid();
-        // Block 15 is the last of node 0; its dilation reaches block 16 in node 1.
-        add_leaf(&mut g, IVec3::new(120, 0, 0), 1.0);
+        // Voxel 127 is the last of node 0; its part [125, 129] reaches into node 1.
+        add_voxel(&mut g, IVec3::new(127, 3, 3), 1.0);
         let s = Occupancy::build(&g).spans(dv(100.0, 3.5, 3.5), DVec3::X, 0.0, 100.0);
-        check(&s, &[(12.0, 36.0, 1.0)]);
+        check(&s, &[(25.0, 29.0, 1.0)]);
     }
 
     #[test]
@@ -457,13 +599,13 @@ mod tests {
         let mut g = grid();
         g.insert_tile(TileLevel::Node, IVec3::ZERO, 0.25);
         let occ = Occupancy::build(&g);
-        // Node [0, 128) plus a one-block shell: [−8, 136).
+        // Node voxels [0, 127] are seen by samples in (−1, 128); with the slack, [−2, 129].
         let s = occ.spans(dv(-50.0, 64.0, 64.0), DVec3::X, 0.0, 1000.0);
-        check(&s, &[(42.0, 186.0, 0.25)]);
-        // A leaf right beside the tile raises the majorant of the merged span.
-        add_leaf(&mut g, IVec3::new(128, 64, 64), 3.0);
-        let s = Occupancy::build(&g).spans(dv(-50.0, 64.5, 64.5), DVec3::X, 0.0, 1000.0);
-        check(&s, &[(42.0, 194.0, 3.0)]);
+        check(&s, &[(48.0, 179.0, 0.25)]);
+        // A voxel right beside the tile extends the span and raises its majorant.
+        add_voxel(&mut g, IVec3::new(131, 67, 67), 3.0);
+        let s = Occupancy::build(&g).spans(dv(-50.0, 67.5, 67.5), DVec3::X, 0.0, 1000.0);
+        check(&s, &[(48.0, 183.0, 3.0)]);
     }
 
     #[test]
@@ -484,11 +626,12 @@ mod tests {
         add_leaf(&mut g, IVec3::ZERO, 1.0);
         add_leaf(&mut g, IVec3::new(16, 32, 8), 4.0);
         let occ = Occupancy::build(&g);
-        // p(t) = (−4, −20, 2) + t·(0.5, 1, 0.25).
-        // Leaf A, dilated [−8,16)³: x → t∈[−8,40), y → [12,36), z → [−40,56): [12, 36).
-        // Leaf B, dilated [8,32)×[24,48)×[0,24): x → [24,72), y → [44,68), z → [−8,88): [44, 68).
-        let s = occ.spans(dv(-4.0, -20.0, 2.0), dv(0.5, 1.0, 0.25), -100.0, 200.0);
-        check(&s, &[(12.0, 36.0, 1.0), (44.0, 68.0, 4.0)]);
+        // p(t) = (−1.5, −6.5, 1) + t·(0.5, 1, 0.25), through both voxels' centres.
+        // Voxel (3,3,3), part [1,5]³: x → t∈[5,13], y → [7.5,11.5], z → [0,16]: [7.5, 11.5].
+        // Voxel (19,35,11), part [17,21]×[33,37]×[9,13]: x → [37,45], y → [39.5,43.5],
+        // z → [32,48]: [39.5, 43.5].
+        let s = occ.spans(dv(-1.5, -6.5, 1.0), dv(0.5, 1.0, 0.25), -100.0, 200.0);
+        check(&s, &[(7.5, 11.5, 1.0), (39.5, 43.5, 4.0)]);
     }
 
     #[test]
@@ -498,11 +641,11 @@ mod tests {
         let occ = Occupancy::build(&g);
         check(
             &occ.spans(dv(4.0, 4.0, 4.0), DVec3::Z, 0.0, 100.0),
-            &[(0.0, 12.0, 1.0)],
+            &[(0.0, 1.0, 1.0)],
         );
         check(
             &occ.spans(dv(4.0, 4.0, 4.0), -DVec3::Z, 0.0, 100.0),
-            &[(0.0, 12.0, 1.0)],
+            &[(0.0, 3.0, 1.0)],
         );
     }
 
