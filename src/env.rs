@@ -198,6 +198,10 @@ impl Environment {
     /// of [`crate::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
     /// background matches rotated SH lighting.
     pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
+        // No turn is the common case; it skips a sin_cos per lookup.
+        if angle == 0.0 {
+            return self.lookup(dir);
+        }
         self.lookup(sh::rotate_dir_y(dir, -angle))
     }
 

@@ -72,10 +72,11 @@ pub trait InScatter: Sync {
 /// interpolation of T_ri + F_ms, so the white furnace is untouched; at albedo 0.9 the multiple-
 /// scattering error against the path tracer stays as it was (3.6 % cloud, 3.9 % torus).
 pub struct TransferRadiance<'a> {
-    k: f32,
-    radiance: &'a Radiance,
-    /// Per slot, ln of the mean of the direct RGB (−∞ where it is 0).
-    log_luma: Vec<f32>,
+    inv_k: f32,
+    /// Per slot: direct RGB, indirect RGB, ln of the mean direct brightness (−∞ where it is 0)
+    /// and a pad — one record, one cache line read per corner.
+    nodes: Vec<[f32; 8]>,
+    _radiance: std::marker::PhantomData<&'a Radiance>,
     /// Share of the direct light removed by geometric interpolation that reappears as indirect.
     gap_to_indirect: f32,
     /// Per interpolation cell (key = its lowest transfer voxel), the slots of its eight corners
@@ -94,15 +95,19 @@ impl<'a> TransferRadiance<'a> {
                 cells.entry(*v - corner(n)).or_insert([NO_SLOT; 8])[n] = slot as u32;
             }
         }
-        let log_luma = radiance
+        let nodes = radiance
             .direct
             .iter()
-            .map(|d| ((d[0] + d[1] + d[2]) / 3.0).ln())
+            .zip(&radiance.indirect)
+            .map(|(d, i)| {
+                let log_y = ((d[0] + d[1] + d[2]) / 3.0).ln();
+                [d[0], d[1], d[2], i[0], i[1], i[2], log_y, 0.0]
+            })
             .collect();
         TransferRadiance {
-            k: layout.k as f32,
-            radiance,
-            log_luma,
+            inv_k: 1.0 / layout.k as f32,
+            nodes,
+            _radiance: std::marker::PhantomData,
             gap_to_indirect,
             cells,
         }
@@ -122,7 +127,7 @@ impl InScatter for TransferRadiance<'_> {
 
     #[inline]
     fn radiance(&self, p: Vec3, cache: &mut CornerCache) -> [[f32; 3]; 2] {
-        let q = p / self.k;
+        let q = p * self.inv_k;
         let b = floor_to_int(q);
         let f = q - b.as_vec3();
         if cache.base != Some(b) {
@@ -144,13 +149,12 @@ impl InScatter for TransferRadiance<'_> {
             let c = corner(n);
             let w = |bit: i32, t: f32| if bit == 1 { t } else { 1.0 - t };
             let w = w(c.x, f.x) * w(c.y, f.y) * w(c.z, f.z);
-            let s = slot as usize;
-            let (d, i) = (self.radiance.direct[s], self.radiance.indirect[s]);
+            let node = &self.nodes[slot as usize];
             for ch in 0..3 {
-                out[0][ch] += w * d[ch];
-                out[1][ch] += w * i[ch];
+                out[0][ch] += w * node[ch];
+                out[1][ch] += w * node[3 + ch];
             }
-            log_y += w * self.log_luma[s];
+            log_y += w * node[6];
         }
         let y = (out[0][0] + out[0][1] + out[0][2]) / 3.0;
         if log_y.is_finite() && y > 0.0 {
@@ -287,11 +291,15 @@ pub fn march_ray<S: InScatter>(
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
         let k_lo = k_at(t_a).max(next_k);
+        // k as f64, counted in f64 (exact below 2^53): a u64 → f64 conversion per step costs
+        // a dozen instructions on x86-64's baseline.
+        let mut kf = k_lo as f64;
         for k in k_lo..k_hi {
             taken += 1;
             // Position from the entry point in f32: exact enough (the DDA's dilation leaves a voxel
             // of slack) and the same arithmetic whether or not steps are skipped.
-            let s = ((k as f64 + jitter) * step) as f32;
+            let s = ((kf + jitter) * step) as f32;
+            kf += 1.0;
             let p = entry + d32 * s;
             let t = t_entry + s as f64;
             let rho = sampler.sample(p);

@@ -38,6 +38,9 @@ const CORNER_OFFSETS: [usize; 8] = {
     o
 };
 
+/// Values from a cell's lower corner to its upper one in a brick (the last corner offset + 1).
+const CELL_REACH: usize = BRICK_DIM * BRICK_DIM + BRICK_DIM + 2;
+
 /// What a block's entry holds.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Entry {
@@ -167,7 +170,9 @@ impl<'a> BrickSampler<'a> {
                 let brick = &self.bricks.values[b as usize];
                 let l = (i0 & (LEAF_DIM - 1)).as_uvec3();
                 let base = (l.x as usize * BRICK_DIM + l.y as usize) * BRICK_DIM + l.z as usize;
-                let c: [f32; 8] = std::array::from_fn(|n| brick[base + CORNER_OFFSETS[n]]);
+                // One bounds check for the cell's whole reach instead of one per corner.
+                let cell = &brick[base..base + CELL_REACH];
+                let c: [f32; 8] = std::array::from_fn(|n| cell[CORNER_OFFSETS[n]]);
                 trilinear(c, p - i0.as_vec3())
             }
             Some(Entry::Uniform(v)) => v,

@@ -74,13 +74,26 @@ impl BlockCell {
     }
 }
 
+/// One bit per block of a node (16³ blocks).
+type BlockMask = [u64; 1 << (3 * BLOCKS_PER_NODE_LOG2 - 6)];
+
+/// The bit of block `b` (absolute key) in its node's [`BlockMask`]: (word, bit).
+#[inline]
+fn mask_bit(b: IVec3) -> (usize, u32) {
+    let l = b & ((1 << BLOCKS_PER_NODE_LOG2) - 1);
+    let i = ((l.x << (2 * BLOCKS_PER_NODE_LOG2)) | (l.y << BLOCKS_PER_NODE_LOG2) | l.z) as usize;
+    (i >> 6, (i & 63) as u32)
+}
+
 /// What the coarse level knows about a 128³ node.
 #[derive(Debug, Clone, Copy)]
 enum NodeCell {
     /// Every block is occupied; the value bounds the density of the whole node.
     Dense(f32),
-    /// Some blocks are occupied: look them up in the block map.
-    Partial,
+    /// Some blocks are occupied: which ones is bit `x·256 + y·16 + z` (block offsets in the node)
+    /// of the mask at this index of [`Occupancy::masks`], so an empty block costs a bit test
+    /// instead of a hash lookup; occupied ones are looked up in the block map.
+    Partial(u32),
 }
 
 /// The dilated occupancy of a grid, built once and shared by every ray.
@@ -89,6 +102,8 @@ pub struct Occupancy {
     blocks: HashMap<IVec3, BlockCell>,
     /// Nodes (key = voxel >> 7) that hold any occupied block.
     nodes: HashMap<IVec3, NodeCell>,
+    /// Occupied-block masks of the partial nodes.
+    masks: Vec<BlockMask>,
     /// Root tiles (key = voxel >> 12): every node inside is dense; the value bounds the density of
     /// the tile and its one-voxel surroundings.
     roots: HashMap<IVec3, f32>,
@@ -223,8 +238,16 @@ impl Occupancy {
             }
         }
         let mut nodes: HashMap<IVec3, NodeCell> = HashMap::new();
+        let mut masks: Vec<BlockMask> = Vec::new();
         for &b in blocks.keys() {
-            nodes.insert(b >> BLOCKS_PER_NODE_LOG2, NodeCell::Partial);
+            let cell = nodes.entry(b >> BLOCKS_PER_NODE_LOG2).or_insert_with(|| {
+                masks.push([0; 64]);
+                NodeCell::Partial(masks.len() as u32 - 1)
+            });
+            if let NodeCell::Partial(m) = *cell {
+                let (word, bit) = mask_bit(b);
+                masks[m as usize][word] |= 1 << bit;
+            }
         }
         for (&n, &v) in &dense {
             nodes.insert(n, NodeCell::Dense(v));
@@ -246,6 +269,7 @@ impl Occupancy {
         Occupancy {
             blocks,
             nodes,
+            masks,
             roots,
             bounds,
         }
@@ -304,21 +328,29 @@ impl Occupancy {
         };
         let mut pending: Option<Span> = None;
         let whole = (IVec3::MIN, IVec3::MAX);
+        let inv = dir.recip();
         let flow = walk(origin, dir, t0, t1, NODE_LOG2, whole, |node, ta, tb| {
             match self.node(node) {
                 Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
-                Some(NodeCell::Partial) => {
+                Some(NodeCell::Partial(m)) => {
+                    let mask = &self.masks[m as usize];
                     let blo = node << BLOCKS_PER_NODE_LOG2;
                     let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
                     let b_log2 = LEAF_LOG2 as i32;
                     walk(origin, dir, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
-                        let part = match self.blocks.get(&b) {
-                            Some(c) if c.is_full() => Some((tc, td, c.max)),
-                            Some(c) => {
-                                let (lo, hi) = c.bounds(b);
-                                clip_to_box(origin, dir, tc, td, lo, hi).map(|(a, b)| (a, b, c.max))
+                        let (word, bit) = mask_bit(b);
+                        let part = if mask[word] >> bit & 1 == 0 {
+                            None
+                        } else {
+                            match self.blocks.get(&b) {
+                                Some(c) if c.is_full() => Some((tc, td, c.max)),
+                                Some(c) => {
+                                    let (lo, hi) = c.bounds(b);
+                                    clip_inv(origin, inv, tc, td, lo, hi)
+                                        .map(|(a, b)| (a, b, c.max))
+                                }
+                                None => None,
                             }
-                            None => None,
                         };
                         match part {
                             Some((a, b, m)) => {
@@ -405,21 +437,58 @@ pub fn clip_to_box(
     lo: DVec3,
     hi: DVec3,
 ) -> Option<(f64, f64)> {
+    clip_inv(origin, dir.recip(), t0, t1, lo, hi)
+}
+
+/// [`clip_to_box`] with `inv` = 1/`dir` per axis, computed once per ray: a walk clips many
+/// blocks, and a multiplication costs a fraction of a division. An axis whose `inv` is infinite
+/// (a zero or subnormal direction) is parallel to the slabs: inside or a miss, never 0·∞ = NaN.
+#[inline]
+fn clip_inv(
+    origin: DVec3,
+    inv: DVec3,
+    t0: f64,
+    t1: f64,
+    lo: DVec3,
+    hi: DVec3,
+) -> Option<(f64, f64)> {
     let (mut a, mut b) = (t0, t1);
     for axis in 0..3 {
-        let (o, d) = (origin[axis], dir[axis]);
-        if d == 0.0 {
+        let o = origin[axis];
+        if !inv[axis].is_finite() {
             if o < lo[axis] || o > hi[axis] {
                 return None;
             }
         } else {
-            let ta = (lo[axis] - o) / d;
-            let tb = (hi[axis] - o) / d;
-            a = a.max(ta.min(tb));
-            b = b.min(ta.max(tb));
+            let ta = (lo[axis] - o) * inv[axis];
+            let tb = (hi[axis] - o) * inv[axis];
+            let (near, far) = if ta < tb { (ta, tb) } else { (tb, ta) };
+            a = max(a, near);
+            b = min(b, far);
         }
     }
     (a < b).then_some((a, b))
+}
+
+/// The smaller of two numbers that are not NaN (rays are checked finite before walking): one
+/// compare, where `f64::min`'s NaN rules cost several instructions in the DDA's innermost loop.
+#[inline(always)]
+fn min(a: f64, b: f64) -> f64 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// The larger of two numbers that are not NaN; see [`min`].
+#[inline(always)]
+fn max(a: f64, b: f64) -> f64 {
+    if a > b {
+        a
+    } else {
+        b
+    }
 }
 
 /// Amanatides–Woo walk over cells of edge 2^`log2` voxels, from t0 to t1, cells clamped to
@@ -458,7 +527,7 @@ fn walk(
     }
     let mut t = t0;
     loop {
-        let t_next = t_max.min_element().min(t1);
+        let t_next = min(min(min(t_max.x, t_max.y), t_max.z), t1);
         if t_next > t {
             visit(cell, t, t_next)?;
         }
@@ -477,7 +546,7 @@ fn walk(
             return ControlFlow::Continue(());
         }
         t_max[axis] += t_delta[axis];
-        t = t.max(t_next);
+        t = max(t, t_next);
     }
 }
 
