@@ -329,49 +329,58 @@ impl Occupancy {
         let mut pending: Option<Span> = None;
         let whole = (IVec3::MIN, IVec3::MAX);
         let inv = dir.recip();
-        let flow = walk(origin, dir, t0, t1, NODE_LOG2, whole, |node, ta, tb| {
-            match self.node(node) {
-                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
-                Some(NodeCell::Partial(m)) => {
-                    let mask = &self.masks[m as usize];
-                    let blo = node << BLOCKS_PER_NODE_LOG2;
-                    let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
-                    let b_log2 = LEAF_LOG2 as i32;
-                    walk(origin, dir, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
-                        let (word, bit) = mask_bit(b);
-                        let part = if mask[word] >> bit & 1 == 0 {
-                            None
-                        } else {
-                            match self.blocks.get(&b) {
-                                Some(c) if c.is_full() => Some((tc, td, c.max)),
-                                Some(c) => {
-                                    let (lo, hi) = c.bounds(b);
-                                    clip_inv(origin, inv, tc, td, lo, hi)
-                                        .map(|(a, b)| (a, b, c.max))
+        let flow = walk(
+            origin,
+            dir,
+            inv,
+            t0,
+            t1,
+            NODE_LOG2,
+            whole,
+            |node, ta, tb| {
+                match self.node(node) {
+                    Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
+                    Some(NodeCell::Partial(m)) => {
+                        let mask = &self.masks[m as usize];
+                        let blo = node << BLOCKS_PER_NODE_LOG2;
+                        let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
+                        let b_log2 = LEAF_LOG2 as i32;
+                        walk(origin, dir, inv, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
+                            let (word, bit) = mask_bit(b);
+                            let part = if mask[word] >> bit & 1 == 0 {
+                                None
+                            } else {
+                                match self.blocks.get(&b) {
+                                    Some(c) if c.is_full() => Some((tc, td, c.max)),
+                                    Some(c) => {
+                                        let (lo, hi) = c.bounds(b);
+                                        clip_inv(origin, inv, tc, td, lo, hi)
+                                            .map(|(a, b)| (a, b, c.max))
+                                    }
+                                    None => None,
                                 }
-                                None => None,
+                            };
+                            match part {
+                                Some((a, b, m)) => {
+                                    // Empty space before or after the occupied part ends the span.
+                                    if a > tc {
+                                        close(&mut pending, &mut f)?;
+                                    }
+                                    extend(&mut pending, a, b, m, split, &mut f)?;
+                                    if b < td {
+                                        close(&mut pending, &mut f)?;
+                                    }
+                                }
+                                None => close(&mut pending, &mut f)?,
                             }
-                        };
-                        match part {
-                            Some((a, b, m)) => {
-                                // Empty space before or after the occupied part ends the span.
-                                if a > tc {
-                                    close(&mut pending, &mut f)?;
-                                }
-                                extend(&mut pending, a, b, m, split, &mut f)?;
-                                if b < td {
-                                    close(&mut pending, &mut f)?;
-                                }
-                            }
-                            None => close(&mut pending, &mut f)?,
-                        }
-                        ControlFlow::Continue(())
-                    })?;
+                            ControlFlow::Continue(())
+                        })?;
+                    }
+                    None => close(&mut pending, &mut f)?,
                 }
-                None => close(&mut pending, &mut f)?,
-            }
-            ControlFlow::Continue(())
-        });
+                ControlFlow::Continue(())
+            },
+        );
         if flow.is_continue() {
             if let Some(s) = pending {
                 let _ = f(s);
@@ -491,12 +500,22 @@ fn max(a: f64, b: f64) -> f64 {
     }
 }
 
+/// `x.floor() as i32` without a libm call (x86-64's baseline has no SSE4.1 `roundsd`); equal to
+/// it for every x, saturating the same way.
+#[inline(always)]
+fn floor(x: f64) -> i32 {
+    let t = x as i32;
+    t.saturating_sub((x < t as f64) as i32)
+}
+
 /// Amanatides–Woo walk over cells of edge 2^`log2` voxels, from t0 to t1, cells clamped to
 /// `range` (so a walk started on a node face stays in that node). Calls `visit(cell, ta, tb)` for
 /// every cell crossed over a non-empty interval.
+#[allow(clippy::too_many_arguments)]
 fn walk(
     origin: DVec3,
     dir: DVec3,
+    inv: DVec3,
     t0: f64,
     t1: f64,
     log2: i32,
@@ -506,12 +525,8 @@ fn walk(
     let size = (1i64 << log2) as f64;
     let start = (origin + dir * t0) / size;
     // `as` saturates, so even an absurd coordinate gives a valid (clamped) cell.
-    let mut cell = IVec3::new(
-        start.x.floor() as i32,
-        start.y.floor() as i32,
-        start.z.floor() as i32,
-    )
-    .clamp(range.0, range.1);
+    let mut cell =
+        IVec3::new(floor(start.x), floor(start.y), floor(start.z)).clamp(range.0, range.1);
     let mut step = IVec3::ZERO;
     let mut t_max = DVec3::INFINITY;
     let mut t_delta = DVec3::INFINITY;
@@ -521,8 +536,8 @@ fn walk(
             let c = cell[axis] as f64;
             let boundary = if d > 0.0 { c + 1.0 } else { c } * size;
             step[axis] = if d > 0.0 { 1 } else { -1 };
-            t_max[axis] = (boundary - origin[axis]) / d;
-            t_delta[axis] = size / d.abs();
+            t_max[axis] = (boundary - origin[axis]) * inv[axis];
+            t_delta[axis] = size * inv[axis].abs();
         }
     }
     let mut t = t0;
@@ -742,6 +757,29 @@ mod tests {
         assert!(Occupancy::build(&g)
             .spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0)
             .is_empty());
+    }
+
+    #[test]
+    fn floor_is_libm_floor_saturated() {
+        for x in [
+            -3e9,
+            -2147483648.5,
+            -7.5,
+            -1.0,
+            -0.25,
+            -0.0,
+            0.0,
+            0.5,
+            1.0,
+            8.999,
+            2147483647.5,
+            3e9,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ] {
+            assert_eq!(floor(x), x.floor() as i32, "{x}");
+        }
     }
 
     #[test]
