@@ -125,7 +125,7 @@ impl ImageBuf {
         self.check()?;
         let (width, height) = (self.width, self.height);
         let mut planes: Vec<(String, Vec<f32>)> = ["R", "G", "B", "A"]
-            .iter()
+            .into_par_iter()
             .enumerate()
             .map(|(k, name)| (name.to_string(), self.rgba.iter().map(|p| p[k]).collect()))
             .collect();
