@@ -56,65 +56,48 @@ pub trait InScatter: Sync {
 /// Ls interpolated from the per-transfer-voxel radiance of [`crate::render::relight`], with the
 /// trilinear weights of [`TransferLayout::corners`].
 ///
-/// **Direct light is interpolated geometrically.** T_ri falls off exponentially into the medium,
-/// and a straight line between two nodes lies above an exponential: trilinear interpolation
-/// lights the inside of every transfer voxel too brightly (measured against the path tracer at
-/// 0.5 optical depth per transfer voxel: single scattering +4.3 % on the cloud, +6.3 % on the
-/// torus). So the direct part is scaled by c = exp(Σ wₙ ln Yₙ) / Σ wₙ Yₙ ≤ 1, Y the mean of a
-/// node's direct RGB — log-linear interpolation of its brightness, exact for an exponential
-/// profile, the colour still blended linearly (bias +0.75 % and +4.1 %). Where a corner is
-/// missing or unlit, interpolation stays linear.
-///
-/// **What direct light loses, scattered light gains.** Between nodes the unscattered light that
-/// geometric interpolation removes has collided sooner; the fraction albedo of it is scattered, and
-/// is added to the indirect part when the transfer has multiple scattering (`gap_to_indirect` =
-/// albedo; 0 for a `--single-scatter` bake). At albedo 1 the sum is exactly the linear
-/// interpolation of T_ri + F_ms, so the white furnace is untouched; at albedo 0.9 the multiple-
-/// scattering error against the path tracer stays as it was (3.6 % cloud, 3.9 % torus).
+/// Plain trilinear interpolation, direct light included: T_ri falls off exponentially into the
+/// medium and a straight line between two nodes lies above it, but the stored T_ri is not the
+/// nodes' point value — it is fitted so that exactly this interpolation matches T_ri where the
+/// density is ([`crate::transfer::fit`]).
 pub struct TransferRadiance<'a> {
     inv_k: f32,
-    /// Per slot: direct RGB, indirect RGB, ln of the mean direct brightness (−∞ where it is 0)
-    /// and a pad — one record, one cache line read per corner.
-    nodes: Vec<[f32; 8]>,
-    _radiance: std::marker::PhantomData<&'a Radiance>,
-    /// Share of the direct light removed by geometric interpolation that reappears as indirect.
-    gap_to_indirect: f32,
-    /// Per interpolation cell (key = its lowest transfer voxel), the slots of its eight corners
-    /// (`NO_SLOT` where none): one hash lookup when a ray enters a cell instead of eight.
+    /// Per slot, direct RGB then indirect RGB — one record, one cache line read per corner —
+    /// and a last all-zero record that missing corners point at, so a corner needs no test.
+    nodes: Vec<[f32; 6]>,
+    /// Per interpolation cell (key = its lowest transfer voxel), the records of its eight
+    /// corners: one hash lookup when a ray enters a cell instead of eight.
     cells: HashMap<IVec3, [u32; 8]>,
+    _radiance: std::marker::PhantomData<&'a Radiance>,
 }
 
-/// A cell corner without a transfer voxel: its radiance reads as zero.
-const NO_SLOT: u32 = u32::MAX;
-
 impl<'a> TransferRadiance<'a> {
-    pub fn new(layout: &TransferLayout, radiance: &'a Radiance, gap_to_indirect: f32) -> Self {
-        let mut cells: HashMap<IVec3, [u32; 8]> = HashMap::with_capacity(layout.len() * 2);
-        for (slot, v) in layout.voxels().iter().enumerate() {
-            for n in 0..8 {
-                cells.entry(*v - corner(n)).or_insert([NO_SLOT; 8])[n] = slot as u32;
-            }
-        }
-        let nodes = radiance
+    pub fn new(layout: &TransferLayout, radiance: &'a Radiance) -> Self {
+        let mut nodes: Vec<[f32; 6]> = radiance
             .direct
             .iter()
             .zip(&radiance.indirect)
-            .map(|(d, i)| {
-                let log_y = ((d[0] + d[1] + d[2]) / 3.0).ln();
-                [d[0], d[1], d[2], i[0], i[1], i[2], log_y, 0.0]
-            })
+            .map(|(d, i)| [d[0], d[1], d[2], i[0], i[1], i[2]])
             .collect();
+        // A missing corner's data reads as zero; the apron makes that rare inside the medium.
+        let missing = nodes.len() as u32;
+        nodes.push([0.0; 6]);
+        let mut cells: HashMap<IVec3, [u32; 8]> = HashMap::with_capacity(layout.len() * 2);
+        for (slot, v) in layout.voxels().iter().enumerate() {
+            for n in 0..8 {
+                cells.entry(*v - corner(n)).or_insert([missing; 8])[n] = slot as u32;
+            }
+        }
         TransferRadiance {
             inv_k: 1.0 / layout.k as f32,
             nodes,
-            _radiance: std::marker::PhantomData,
-            gap_to_indirect,
             cells,
+            _radiance: std::marker::PhantomData,
         }
     }
 }
 
-/// The corner slots of the cell holding the last sample: a ray takes about K steps per transfer
+/// The corner records of the cell holding the last sample: a ray takes about K steps per transfer
 /// voxel, so the lookup is paid once per cell crossed, not per step.
 #[derive(Default)]
 pub struct CornerCache {
@@ -138,14 +121,7 @@ impl InScatter for TransferRadiance<'_> {
         let Some(slots) = cache.slots else {
             return out;
         };
-        // Σ w ln Y over the corners; −∞ (linear interpolation) once a corner is missing or unlit.
-        let mut log_y = 0.0f32;
         for (n, &slot) in slots.iter().enumerate() {
-            // A missing corner's data reads as zero; the apron makes that rare inside the medium.
-            if slot == NO_SLOT {
-                log_y = f32::NEG_INFINITY;
-                continue;
-            }
             let c = corner(n);
             let w = |bit: i32, t: f32| if bit == 1 { t } else { 1.0 - t };
             let w = w(c.x, f.x) * w(c.y, f.y) * w(c.z, f.z);
@@ -153,18 +129,6 @@ impl InScatter for TransferRadiance<'_> {
             for ch in 0..3 {
                 out[0][ch] += w * node[ch];
                 out[1][ch] += w * node[3 + ch];
-            }
-            log_y += w * node[6];
-        }
-        let y = (out[0][0] + out[0][1] + out[0][2]) / 3.0;
-        if log_y.is_finite() && y > 0.0 {
-            // exp(Σ w ln Y) ≤ Σ w Y (weighted AM–GM), so c ≤ 1 up to rounding.
-            let c = (log_y.exp() / y).min(1.0);
-            let [direct, indirect] = &mut out;
-            for (d, i) in direct.iter_mut().zip(indirect.iter_mut()) {
-                let lost = (1.0 - c) * *d;
-                *d -= lost;
-                *i += self.gap_to_indirect * lost;
             }
         }
         out
@@ -710,8 +674,7 @@ mod tests {
     fn transfer_radiance_interpolates_slots() {
         let g = unit_tile(Transform::default(), 1.0);
         let layout = TransferLayout::build(&g, 6);
-        // Direct: red = the transfer voxel's x, green 1 (brightness (x+1)/2, linear in x); one
-        // plane of voxels (x = 0) unlit, where interpolation must stay linear.
+        // Direct: red = the transfer voxel's x, green 1; one plane of voxels (x = 0) unlit.
         let radiance = Radiance {
             direct: layout
                 .voxels()
@@ -727,26 +690,14 @@ mod tests {
             indirect: vec![[0.25; 3]; layout.len()],
         };
         let mut cache = CornerCache::default();
-        // Between x = 5 and 6, half way: geometric interpolation of the brightness scales the
-        // linear blend by c = √(3·3.5) / 3.25 < 1 and hands the rest to the indirect part.
-        let p = Vec3::new(33.0, 20.5, 70.25);
-        let c = (3.0f32 * 3.5).sqrt() / 3.25;
-        for gap in [1.0f32, 0.0] {
-            let src = TransferRadiance::new(&layout, &radiance, gap);
-            let [d, i] = src.radiance(p, &mut cache);
-            assert!(
-                (d[0] - c * 5.5).abs() < 1e-5 && (d[1] - c).abs() < 1e-6,
-                "{d:?}"
-            );
-            assert!(
-                (i[0] - (0.25 + gap * (1.0 - c) * 5.5)).abs() < 1e-5,
-                "{i:?}"
-            );
-            assert!((i[2] - 0.25).abs() < 1e-6);
-        }
-        // Next to the unlit plane: plain trilinear, as the layout's own weights give it.
-        let src = TransferRadiance::new(&layout, &radiance, 1.0);
-        for q in [Vec3::new(3.0, 20.5, 70.25), Vec3::new(1.0, 9.7, 3.0)] {
+        let src = TransferRadiance::new(&layout, &radiance);
+        // Trilinear, as the layout's own weights give it: between x = 5 and 6, next to the unlit
+        // plane, and at a corner.
+        for q in [
+            Vec3::new(33.0, 20.5, 70.25),
+            Vec3::new(3.0, 20.5, 70.25),
+            Vec3::new(1.0, 9.7, 3.0),
+        ] {
             let [d, i] = src.radiance(q, &mut cache);
             let want: f32 = layout
                 .corners(q)
@@ -756,6 +707,11 @@ mod tests {
             assert!((d[0] - want).abs() < 1e-5, "{q}");
             assert!((i[0] - 0.25).abs() < 1e-6);
         }
+        let [d, _] = src.radiance(Vec3::new(33.0, 20.5, 70.25), &mut cache);
+        assert!(
+            (d[0] - 5.5).abs() < 1e-5 && (d[1] - 1.0).abs() < 1e-6,
+            "{d:?}"
+        );
     }
 
     #[test]

@@ -95,15 +95,7 @@ pub fn render_volume(
     let radiance = relight(transfer, env_coeffs);
     let relight_time = t.elapsed();
     let t = Instant::now();
-    // Direct light lost to geometric interpolation is partly scattered light instead — when the
-    // transfer has any (see `TransferRadiance`).
-    let multiple = transfer.f_ms.iter().any(|&v| v != 0.0);
-    let gap_to_indirect = if multiple {
-        transfer.medium.albedo
-    } else {
-        0.0
-    };
-    let source = march::TransferRadiance::new(&transfer.layout, &radiance, gap_to_indirect);
+    let source = march::TransferRadiance::new(&transfer.layout, &radiance);
     let scene = Scene::new(density, &occupancy, transfer.medium, &source, background);
     let bricks_time = t.elapsed();
     let t = Instant::now();

@@ -28,8 +28,10 @@ use crate::error::{Error, Result};
 use crate::volume::sparse::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 
 const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
-/// Bumped whenever the layout changes; older caches are refused with a message to re-bake.
-pub const VERSION: u32 = 1;
+/// Bumped whenever the layout or the meaning of the data changes; older caches are refused with a
+/// message to re-bake. 2: T_ri holds values fitted for trilinear interpolation (`transfer::fit`),
+/// not point values, and F_ms what the fit took from them.
+pub const VERSION: u32 = 2;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
 const LEAF_BYTES: u64 = 12 + 64 + 4 * LEAF_VOXELS as u64;

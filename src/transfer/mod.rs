@@ -3,6 +3,7 @@
 //! scattering events (`f_ms`, thesis 4.2) — independent of any environment.
 
 pub mod cache;
+pub mod fit;
 pub mod grid;
 pub mod lattice;
 pub mod single;
@@ -84,15 +85,23 @@ pub fn bake(
     stats.transfer_voxels = layout.len();
     stats.transfer_tiles = layout.tile_count();
 
+    // T_ri twice: at the nodes (the point values the lattice's light is balanced against) and
+    // over the density around them (the footprint means the renderer's values are fitted to).
     let clock = std::time::Instant::now();
-    let bar = crate::progress::bar(layout.len() as u64, "single", quiet);
-    let single = single::SingleSettings {
-        bands: settings.bands,
-        samples: settings.samples,
-        seed: settings.seed,
-        skip_empty: true,
+    let bar = crate::progress::bar(2 * layout.len() as u64, "single", quiet);
+    let single = |origins| {
+        let single = single::SingleSettings {
+            bands: settings.bands,
+            samples: settings.samples,
+            seed: settings.seed,
+            skip_empty: true,
+            origins,
+        };
+        single::bake_single(density, &layout, medium, single, &bar)
     };
-    let t_ri = single::bake_single(density, &layout, medium, single, &bar);
+    let point = single(single::Origins::Node);
+    let mut t_ri = single(single::Origins::Footprint);
+    fit::least_squares(density, &layout, &mut t_ri, settings.bands * settings.bands);
     bar.finish_and_clear();
     stats.single_seconds = clock.elapsed().as_secs_f64();
 
@@ -101,13 +110,19 @@ pub fn bake(
         true => vec![0.0; t_ri.len()],
         false => {
             let first = lattice::Source {
-                t_ri: &t_ri,
+                t_ri: &point,
                 bands: settings.bands,
                 medium,
             };
-            let (f_ms, lattice_stats) =
+            let (mut f_ms, lattice_stats) =
                 lattice::bake_multiple(density, &layout, settings.lattice, &first);
             stats.lattice = Some(lattice_stats);
+            // The unscattered light the fit takes away from a node's point value has collided
+            // sooner; the share albedo of it is scattered. So T_ri + F_ms at a node is what it
+            // is with point values, and at albedo 1 exactly so: the white furnace holds as before.
+            for ((f, p), t) in f_ms.iter_mut().zip(&point).zip(&t_ri) {
+                *f += medium.albedo * (p - t);
+            }
             f_ms
         }
     };
@@ -148,15 +163,17 @@ impl MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
         let one = n * c * 4;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
-        // Single: batch results before they are scattered into T_ri (one more copy of T_ri).
-        let single = one + sets;
+        // Single: the point values kept beside the fitted T_ri, and batch results before they
+        // are scattered into either (two more copies of T_ri).
+        let single = 2 * one + sets;
         // Lattice: per-chunk results (one more copy); per link a target and four segment values
         // (20 bytes) and a sweep-order entry (4); four chunk buffers a thread.
         let d = settings.lattice.directions() as u64;
+        // The point values of T_ri stay alive through the lattice (one more copy).
         let lattice = if settings.single_scatter {
             0
         } else {
-            one + n * d * 24 + threads as u64 * 4 * n * 8 * 4
+            2 * one + n * d * 24 + threads as u64 * 4 * n * 8 * 4
         };
         MemoryEstimate {
             density: density_bytes as u64,

@@ -72,14 +72,31 @@ fn direction_sets(samples: usize, bands: usize, seed: u64) -> Vec<DirectionSet> 
         .collect()
 }
 
-/// Which direction set voxel `v` uses: a hash, so neighbours differ and reruns agree.
-fn set_of(v: IVec3, seed: u64) -> usize {
+/// A hash of voxel `v` and the seed: per-voxel choices that differ between neighbours and agree
+/// between reruns.
+pub(crate) fn voxel_hash(v: IVec3, seed: u64) -> u64 {
     let mut bytes = [0u8; 20];
     bytes[..4].copy_from_slice(&v.x.to_le_bytes());
     bytes[4..8].copy_from_slice(&v.y.to_le_bytes());
     bytes[8..12].copy_from_slice(&v.z.to_le_bytes());
     bytes[12..].copy_from_slice(&seed.to_le_bytes());
-    (xxhash_rust::xxh3::xxh3_64(&bytes) % DIRECTION_SETS as u64) as usize
+    xxhash_rust::xxh3::xxh3_64(&bytes)
+}
+
+/// Which direction set voxel `v` uses.
+fn set_of(v: IVec3, seed: u64) -> usize {
+    (voxel_hash(v, seed) % DIRECTION_SETS as u64) as usize
+}
+
+/// Where a voxel's rays start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Origins {
+    /// At the node: T_ri(x_n, ω), the point value.
+    Node,
+    /// Each direction at its own point of the density around the node
+    /// ([`super::fit::spread_starts`]): the footprint mean t̄_n (the node itself where its
+    /// footprint is empty).
+    Footprint,
 }
 
 /// Settings of the single-scattering pass.
@@ -90,6 +107,7 @@ pub struct SingleSettings {
     pub seed: u64,
     /// Skip empty space (off only to prove that skipping changes nothing).
     pub skip_empty: bool,
+    pub origins: Origins,
 }
 
 /// T_ri for every transfer voxel of `layout`, `layout.len() × bands²`.
@@ -119,9 +137,25 @@ pub fn bake_single(
             let set = &sets[s];
             let mut tr = vec![0f32; slots.len() * n];
             for (row, &slot) in tr.chunks_exact_mut(n).zip(slots) {
-                let x = layout.position(layout.voxels()[slot as usize]);
-                for (t, d) in row.iter_mut().zip(&set.dirs) {
-                    *t = depth.transmittance(x, *d);
+                let v = layout.voxels()[slot as usize];
+                let x = layout.position(v);
+                let starts = match settings.origins {
+                    Origins::Node => None,
+                    Origins::Footprint => {
+                        super::fit::spread_starts(density, layout.k, v, &set.dirs, settings.seed)
+                    }
+                };
+                match starts {
+                    None => {
+                        for (t, d) in row.iter_mut().zip(&set.dirs) {
+                            *t = depth.transmittance(x, *d);
+                        }
+                    }
+                    Some(starts) => {
+                        for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts) {
+                            *t = depth.transmittance(*p, *d);
+                        }
+                    }
                 }
             }
             let mut out = vec![0f32; slots.len() * coeffs];
@@ -188,6 +222,7 @@ mod tests {
             samples: 512,
             seed: 1,
             skip_empty: true,
+            origins: Origins::Node,
         };
         let t = bake_single(
             &density,

@@ -2,7 +2,7 @@
 
 use glam::{IVec3, Vec3};
 use vscatter::sh;
-use vscatter::transfer::single::{bake_single, SingleSettings};
+use vscatter::transfer::single::{bake_single, Origins, SingleSettings};
 use vscatter::transfer::{
     bake, lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout,
 };
@@ -207,6 +207,7 @@ fn t_ri_agrees_with_a_brute_force_reference() {
         samples: 512,
         seed: 3,
         skip_empty: true,
+        origins: Origins::Node,
     };
     let t = bake_single(
         &d,
@@ -261,6 +262,7 @@ fn empty_space_skipping_changes_no_result() {
             samples: 64,
             seed: 5,
             skip_empty,
+            origins: Origins::Footprint,
         };
         bake_single(&d, &layout, medium, s, &indicatif::ProgressBar::hidden())
     };
