@@ -107,18 +107,12 @@ where
         indirect: vec![[0.0; 3]; n],
         depth: vec![0.0; n],
     };
+    let (tile_pixels, tile_stats): (Vec<Vec<Pixel>>, Vec<St>) = rendered.into_iter().unzip();
     let mut stats = St::default();
-    let tiles_per_row = w.div_ceil(TILE) as usize;
-    let mut rows: Vec<Vec<Vec<Pixel>>> = Vec::with_capacity(rendered.len() / tiles_per_row + 1);
-    for (k, (pixels, s)) in rendered.into_iter().enumerate() {
+    for s in tile_stats {
         stats += s;
-        if k % tiles_per_row == 0 {
-            rows.push(Vec::with_capacity(tiles_per_row));
-        }
-        if let Some(row) = rows.last_mut() {
-            row.push(pixels);
-        }
     }
+    let tiles_per_row = w.div_ceil(TILE) as usize;
     // Each band of TILE image rows is filled by one task: a 1080p frame's four buffers are 90 MB,
     // too much to copy (and fault in) on one thread while the other cores wait.
     let band = (TILE * w) as usize;
@@ -128,12 +122,12 @@ where
         .zip(frame.direct.par_chunks_mut(band))
         .zip(frame.indirect.par_chunks_mut(band))
         .zip(frame.depth.par_chunks_mut(band))
-        .zip(rows)
+        .zip(tile_pixels.par_chunks(tiles_per_row))
         .for_each(|((((rgba, direct), indirect), depth), tiles)| {
-            for (t, pixels) in tiles.into_iter().enumerate() {
+            for (t, pixels) in tiles.iter().enumerate() {
                 let x0 = t * TILE as usize;
                 let tw = (TILE as usize).min(w as usize - x0);
-                for (i, p) in pixels.into_iter().enumerate() {
+                for (i, p) in pixels.iter().enumerate() {
                     let at = (i / tw) * w as usize + x0 + i % tw;
                     rgba[at] = p.rgba;
                     direct[at] = p.direct;
