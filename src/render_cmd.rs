@@ -177,7 +177,9 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
 }
 
 /// The cache at `path`, when it exists and was baked from this very source with these settings;
-/// `None` means bake afresh (and overwrite it). A damaged cache is an error, not silently redone.
+/// `None` means bake afresh (and overwrite it). A damaged cache is an error, not silently redone;
+/// one in an older format is merely stale, like one baked with other settings (the format
+/// changes when what the bake computes does, so a new bake is what the user wants).
 fn reusable(
     path: &std::path::Path,
     source: &crate::transfer::cache::Source,
@@ -185,6 +187,11 @@ fn reusable(
 ) -> Result<Option<crate::transfer::cache::Cache>> {
     if !path.exists() {
         return Ok(None);
+    }
+    if let Some(v) = crate::transfer::cache::format_version(path)? {
+        if v < crate::transfer::cache::VERSION {
+            return Ok(None);
+        }
     }
     let cache = crate::transfer::cache::read(path)?;
     let h = &cache.header;

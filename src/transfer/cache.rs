@@ -287,6 +287,18 @@ pub fn is_cache(path: &Path) -> Result<bool> {
     Ok(file.read_exact(&mut magic).is_ok() && &magic == MAGIC)
 }
 
+/// The format version of the cache at `path`; `None` when it does not start with the cache magic.
+pub fn format_version(path: &Path) -> Result<Option<u32>> {
+    use std::io::Read;
+    let mut fixed = [0u8; MAGIC.len() + 4];
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    if file.read_exact(&mut fixed).is_err() || &fixed[..MAGIC.len()] != MAGIC {
+        return Ok(None);
+    }
+    let v = &fixed[MAGIC.len()..];
+    Ok(Some(u32::from_le_bytes([v[0], v[1], v[2], v[3]])))
+}
+
 /// Reads only a cache's header, checked against the file's size (for `info`).
 pub fn read_header(path: &Path) -> Result<Header> {
     use std::io::Read;

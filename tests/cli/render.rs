@@ -178,6 +178,16 @@ fn render_keeps_and_reuses_its_bake() {
         std::fs::metadata(&cache).unwrap().modified().unwrap(),
         first
     );
+    // A cache in an older format (the version follows the 12-byte magic) is stale, not damaged:
+    // baked afresh and rewritten in the current format, equal to a fresh bake.
+    let mut bytes = std::fs::read(&cache).unwrap();
+    let current = bytes[12..16].to_vec();
+    bytes[12..16].copy_from_slice(&1u32.to_le_bytes());
+    std::fs::write(&cache, &bytes).unwrap();
+    run("d.exr", "0.5");
+    assert_eq!(std::fs::read(&cache).unwrap()[12..16], current[..]);
+    let (c, d) = (dir.path().join("c.exr"), dir.path().join("d.exr"));
+    assert_eq!(std::fs::read(c).unwrap(), std::fs::read(d).unwrap());
 }
 
 /// Every pixel's RGB of an EXR written by vscatter.
