@@ -60,7 +60,7 @@ pub trait InScatter: Sync {
 /// medium and a straight line between two nodes lies above it, but the stored T_ri is not the
 /// nodes' point value — it is fitted so that exactly this interpolation matches T_ri where the
 /// density is ([`crate::transfer::fit`]).
-pub struct TransferRadiance<'a> {
+pub struct TransferRadiance {
     inv_k: f32,
     /// Per slot, direct RGB then indirect RGB — one record, one cache line read per corner —
     /// and a last all-zero record that missing corners point at, so a corner needs no test.
@@ -68,11 +68,10 @@ pub struct TransferRadiance<'a> {
     /// Per interpolation cell (key = its lowest transfer voxel), the records of its eight
     /// corners: one hash lookup when a ray enters a cell instead of eight.
     cells: HashMap<IVec3, [u32; 8]>,
-    _radiance: std::marker::PhantomData<&'a Radiance>,
 }
 
-impl<'a> TransferRadiance<'a> {
-    pub fn new(layout: &TransferLayout, radiance: &'a Radiance) -> Self {
+impl TransferRadiance {
+    pub fn new(layout: &TransferLayout, radiance: &Radiance) -> Self {
         let mut nodes: Vec<[f32; 6]> = radiance
             .direct
             .iter()
@@ -92,7 +91,6 @@ impl<'a> TransferRadiance<'a> {
             inv_k: 1.0 / layout.k as f32,
             nodes,
             cells,
-            _radiance: std::marker::PhantomData,
         }
     }
 }
@@ -105,7 +103,7 @@ pub struct CornerCache {
     slots: Option<[u32; 8]>,
 }
 
-impl InScatter for TransferRadiance<'_> {
+impl InScatter for TransferRadiance {
     type Cache = CornerCache;
 
     #[inline]
