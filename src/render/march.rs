@@ -45,12 +45,16 @@ pub const TERMINATION_TRANSMITTANCE: f32 = 1e-3;
 /// chain is unchanged (2.75 %). Half the steps of 0.5 voxel, at half the march's cost.
 pub const DEFAULT_STEP_VOXELS: f32 = 1.0;
 
-/// The in-scattered radiance Ls at a point of the medium, direct and indirect parts.
+/// The in-scattered radiance Ls of the medium, summed along a ray: the march needs only
+/// Σ_k c_k·Ls(p_k) over its steps, never Ls at one point, and an interpolated source can sum its
+/// interpolation weights per cell and read its node data once per cell instead of once per step.
 pub trait InScatter: Sync {
-    /// Per-ray scratch state (such as the last interpolation corners), fresh for every ray.
-    type Cache: Default;
-    /// Ls at density index point `p`: ([direct RGB], [indirect RGB]).
-    fn radiance(&self, p: Vec3, cache: &mut Self::Cache) -> [[f32; 3]; 2];
+    /// Per-ray running sum, fresh (`Default`) for every ray.
+    type Sum: Default;
+    /// Adds c·Ls(p) at density index point `p`.
+    fn add(&self, p: Vec3, c: f32, sum: &mut Self::Sum);
+    /// The sum so far: ([direct RGB], [indirect RGB]).
+    fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2];
 }
 
 /// Ls interpolated from the per-transfer-voxel radiance of [`crate::render::relight`], with the
@@ -93,43 +97,60 @@ impl TransferRadiance {
             cells,
         }
     }
+
+    /// Moves the weights gathered in the current cell into the radiance sum.
+    fn flush(&self, sum: &mut CellSum) {
+        if let Some(slots) = sum.slots {
+            for (&slot, &w) in slots.iter().zip(&sum.weights) {
+                let node = &self.nodes[slot as usize];
+                for ch in 0..3 {
+                    sum.radiance[0][ch] += w * node[ch];
+                    sum.radiance[1][ch] += w * node[3 + ch];
+                }
+            }
+        }
+        sum.weights = [0.0; 8];
+    }
 }
 
-/// The corner records of the cell holding the last sample: a ray takes about K steps per transfer
-/// voxel, so the lookup is paid once per cell crossed, not per step.
+/// A ray's sum for [`TransferRadiance`]: the cell holding the last step, its corner records and
+/// the Σ c·(trilinear weight) of its steps per corner. A ray takes about K steps per transfer
+/// voxel, so the hash lookup and the 8 × 6 products with node data are paid once per cell
+/// crossed; a step adds only its eight weights.
 #[derive(Default)]
-pub struct CornerCache {
+pub struct CellSum {
     base: Option<IVec3>,
     slots: Option<[u32; 8]>,
+    weights: [f32; 8],
+    radiance: [[f32; 3]; 2],
 }
 
 impl InScatter for TransferRadiance {
-    type Cache = CornerCache;
+    type Sum = CellSum;
 
     #[inline]
-    fn radiance(&self, p: Vec3, cache: &mut CornerCache) -> [[f32; 3]; 2] {
+    fn add(&self, p: Vec3, c: f32, sum: &mut CellSum) {
         let q = p * self.inv_k;
         let b = floor_to_int(q);
         let f = q - b.as_vec3();
-        if cache.base != Some(b) {
-            cache.base = Some(b);
-            cache.slots = self.cells.get(&b).copied();
+        if sum.base != Some(b) {
+            self.flush(sum);
+            sum.base = Some(b);
+            sum.slots = self.cells.get(&b).copied();
         }
-        let mut out = [[0.0f32; 3]; 2];
-        let Some(slots) = cache.slots else {
-            return out;
-        };
-        for (n, &slot) in slots.iter().enumerate() {
-            let c = corner(n);
-            let w = |bit: i32, t: f32| if bit == 1 { t } else { 1.0 - t };
-            let w = w(c.x, f.x) * w(c.y, f.y) * w(c.z, f.z);
-            let node = &self.nodes[slot as usize];
-            for ch in 0..3 {
-                out[0][ch] += w * node[ch];
-                out[1][ch] += w * node[3 + ch];
-            }
+        let g = Vec3::ONE - f;
+        // Corner n has x = bit 2, y = bit 1, z = bit 0 (`corner`).
+        let yz = [g.y * g.z, g.y * f.z, f.y * g.z, f.y * f.z];
+        let (cx0, cx1) = (c * g.x, c * f.x);
+        for n in 0..4 {
+            sum.weights[n] += cx0 * yz[n];
+            sum.weights[4 + n] += cx1 * yz[n];
         }
-        out
+    }
+
+    fn total(&self, mut sum: CellSum) -> [[f32; 3]; 2] {
+        self.flush(&mut sum);
+        sum.radiance
     }
 }
 
@@ -249,7 +270,7 @@ pub fn march_ray<S: InScatter>(
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
     let mut sampler = BrickSampler::new(&scene.bricks, scene.density);
-    let mut corners = S::Cache::default();
+    let mut in_scatter = S::Sum::default();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
         let k_lo = k_at(t_a).max(next_k);
@@ -273,12 +294,7 @@ pub fn march_ray<S: InScatter>(
                 let step_tr = (-tau).exp();
                 let opacity = 1.0 - step_tr;
                 if albedo > 0.0 {
-                    let [ls_d, ls_i] = scene.source.radiance(p, &mut corners);
-                    let c = tr * albedo * opacity;
-                    for ch in 0..3 {
-                        out.direct[ch] += c * ls_d[ch];
-                        out.indirect[ch] += c * ls_i[ch];
-                    }
+                    scene.source.add(p, tr * albedo * opacity, &mut in_scatter);
                 }
                 let w = (tr * opacity) as f64;
                 depth_sum += t * w;
@@ -300,6 +316,7 @@ pub fn march_ray<S: InScatter>(
     } else {
         let _ = run(t_entry, t_exit);
     }
+    [out.direct, out.indirect] = scene.source.total(in_scatter);
     let reached = terminated_at.unwrap_or(k_end);
     stats.samples_taken += taken;
     stats.samples_skipped += reached.saturating_sub(taken);
@@ -347,28 +364,38 @@ mod tests {
     use crate::volume::Transform;
     use glam::IVec3;
 
-    /// Ls the same everywhere.
-    struct Constant([[f32; 3]; 2]);
+    /// A test source given by its value at a point, summed step by step.
+    struct Pointwise<F>(F);
 
-    impl InScatter for Constant {
-        type Cache = ();
-        fn radiance(&self, _: Vec3, _: &mut ()) -> [[f32; 3]; 2] {
-            self.0
+    impl<F: Fn(Vec3) -> [[f32; 3]; 2] + Sync> InScatter for Pointwise<F> {
+        type Sum = [[f32; 3]; 2];
+        fn add(&self, p: Vec3, c: f32, sum: &mut Self::Sum) {
+            let ls = (self.0)(p);
+            for part in 0..2 {
+                for ch in 0..3 {
+                    sum[part][ch] += c * ls[part][ch];
+                }
+            }
+        }
+        fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2] {
+            sum
         }
     }
 
-    /// Ls varying smoothly with position, so misplaced steps would show.
-    struct Smooth;
+    /// Ls the same everywhere.
+    fn uniform(ls: [[f32; 3]; 2]) -> Pointwise<impl Fn(Vec3) -> [[f32; 3]; 2] + Sync> {
+        Pointwise(move |_| ls)
+    }
 
-    impl InScatter for Smooth {
-        type Cache = ();
-        fn radiance(&self, p: Vec3, _: &mut ()) -> [[f32; 3]; 2] {
+    /// Ls varying smoothly with position, so misplaced steps would show.
+    fn smooth() -> Pointwise<impl Fn(Vec3) -> [[f32; 3]; 2] + Sync> {
+        Pointwise(|p: Vec3| {
             let s = (p * 0.1).to_array().map(f32::sin);
             [
                 [1.0 + s[0], 1.0 + s[1], 1.0 + s[2]],
                 [0.5 + 0.3 * s[1], 0.2, 0.1],
             ]
-        }
+        })
     }
 
     fn medium(sigma_t: f32, albedo: f32) -> Medium {
@@ -425,7 +452,7 @@ mod tests {
         let empty = SparseGrid::new(anisotropic(), 0.0);
         for g in [&zeros, &empty] {
             let occ = Occupancy::build(g);
-            let source = Constant([[5.0; 3]; 2]);
+            let source = uniform([[5.0; 3]; 2]);
             for bg in backgrounds {
                 let scene = Scene::new(g, &occ, medium(3.0, 0.9), &source, Some(bg));
                 for skip_empty in [true, false] {
@@ -502,7 +529,7 @@ mod tests {
         let g = unit_tile(anisotropic(), 1.0);
         let occ = Occupancy::build(&g);
         let sigma_t = 1.5f32; // longest chord ≈ 2.2 world units: optical depth ≤ 3.4 < 5
-        let source = Constant([[7.0; 3]; 2]);
+        let source = uniform([[7.0; 3]; 2]);
         let e = [1.0f32, 0.5, 2.0];
         let bg = |_: Vec3| e;
         let scene = Scene::new(&g, &occ, medium(sigma_t, 0.0), &source, Some(&bg));
@@ -557,7 +584,7 @@ mod tests {
         let g = unit_tile(anisotropic(), 1.0);
         let occ = Occupancy::build(&g);
         let c = [0.8f32, 1.0, 1.7];
-        let source = Constant([[c[0], c[1], 0.0], [0.0, 0.0, c[2]]]);
+        let source = uniform([[c[0], c[1], 0.0], [0.0, 0.0, c[2]]]);
         let bg = |_: Vec3| c;
         for sigma_t in [0.5f32, 4.0, 200.0] {
             let scene = Scene::new(&g, &occ, medium(sigma_t, 1.0), &source, Some(&bg));
@@ -587,7 +614,8 @@ mod tests {
         let occ = Occupancy::build(&g);
         let directional = |d: Vec3| [d.x.abs(), 0.5 + d.y, 1.0 - d.z];
         for (sigma_t, bg) in [(3.0f32, Some(&directional as Background)), (40.0, None)] {
-            let scene = Scene::new(&g, &occ, medium(sigma_t, 0.8), &Smooth, bg);
+            let source = smooth();
+            let scene = Scene::new(&g, &occ, medium(sigma_t, 0.8), &source, bg);
             let (lo, hi) = world_box(&g, 0.0, 256.0);
             let cams = [
                 Camera::framing(lo, hi, 40, 30, 45.0).unwrap(),
@@ -617,7 +645,7 @@ mod tests {
     fn no_background_is_premultiplied_with_alpha() {
         let g = unit_tile(Transform::default(), 1.0);
         let occ = Occupancy::build(&g);
-        let source = Constant([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
+        let source = uniform([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
         let scene = Scene::new(&g, &occ, medium(0.01, 0.5), &source, None);
         let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 20, 45.0).unwrap();
         let (frame, stats) = render(&scene, &cam, &MarchSettings::default());
@@ -647,7 +675,7 @@ mod tests {
     fn a_degenerate_step_ends_instead_of_hanging() {
         let g = unit_tile(Transform::default(), 1.0);
         let occ = Occupancy::build(&g);
-        let source = Constant([[1.0; 3]; 2]);
+        let source = uniform([[1.0; 3]; 2]);
         let scene = Scene::new(&g, &occ, medium(1.0, 0.5), &source, None);
         let mut stats = MarchStats::default();
         for step_voxels in [0.0, f32::NAN, -1.0] {
@@ -687,29 +715,54 @@ mod tests {
                 .collect(),
             indirect: vec![[0.25; 3]; layout.len()],
         };
-        let mut cache = CornerCache::default();
         let src = TransferRadiance::new(&layout, &radiance);
-        // Trilinear, as the layout's own weights give it: between x = 5 and 6, next to the unlit
-        // plane, and at a corner.
-        for q in [
-            Vec3::new(33.0, 20.5, 70.25),
-            Vec3::new(3.0, 20.5, 70.25),
-            Vec3::new(1.0, 9.7, 3.0),
-        ] {
-            let [d, i] = src.radiance(q, &mut cache);
-            let want: f32 = layout
+        let at = |q: Vec3| {
+            let mut sum = CellSum::default();
+            src.add(q, 1.0, &mut sum);
+            src.total(sum)
+        };
+        // The layout's own trilinear weights, direct red.
+        let want = |q: Vec3| -> f32 {
+            layout
                 .corners(q)
                 .iter()
                 .map(|(s, w)| s.map_or(0.0, |s| w * radiance.direct[s][0]))
-                .sum();
-            assert!((d[0] - want).abs() < 1e-5, "{q}");
+                .sum()
+        };
+        // Between x = 5 and 6, next to the unlit plane, and at a corner.
+        let points = [
+            Vec3::new(33.0, 20.5, 70.25),
+            Vec3::new(3.0, 20.5, 70.25),
+            Vec3::new(1.0, 9.7, 3.0),
+        ];
+        for q in points {
+            let [d, i] = at(q);
+            assert!((d[0] - want(q)).abs() < 1e-5, "{q}");
             assert!((i[0] - 0.25).abs() < 1e-6);
         }
-        let [d, _] = src.radiance(Vec3::new(33.0, 20.5, 70.25), &mut cache);
+        let [d, _] = at(points[0]);
         assert!(
             (d[0] - 5.5).abs() < 1e-5 && (d[1] - 1.0).abs() < 1e-6,
             "{d:?}"
         );
+        // A weighted sum over steps that leave a cell and come back to it is the sum of the
+        // weighted point values: no cell's weights are lost or counted twice.
+        let steps = [
+            (points[0], 0.5),
+            (points[0] + 0.5, 0.25),
+            (points[1], 2.0),
+            (points[0], 1.0),
+        ];
+        let mut sum = CellSum::default();
+        steps.iter().for_each(|&(q, c)| src.add(q, c, &mut sum));
+        let [d, i] = src.total(sum);
+        let expect: f32 = steps.iter().map(|&(q, c)| c * want(q)).sum();
+        assert!(
+            (d[0] - expect).abs() < 1e-5 * expect,
+            "{} vs {expect}",
+            d[0]
+        );
+        assert!((i[2] - 0.25 * 3.75).abs() < 1e-6);
     }
 
     #[test]
@@ -727,7 +780,8 @@ mod tests {
         let sky = |d: Vec3| [0.2 + d.y.max(0.0), 0.4, 0.9];
         // An optical depth of about 8 across the cloud's 96-voxel width at density 1.
         let sigma_t = 8.0 / (96.0 * g.transform.voxel_size().x as f32);
-        let scene = Scene::new(&g, &occ, medium(sigma_t, 0.9), &Smooth, Some(&sky));
+        let source = smooth();
+        let scene = Scene::new(&g, &occ, medium(sigma_t, 0.9), &source, Some(&sky));
         let (a, sa) = render(&scene, &cam, &MarchSettings::default());
         let plain = MarchSettings {
             skip_empty: false,
