@@ -142,9 +142,10 @@ impl InScatter for TransferRadiance {
         // Corner n has x = bit 2, y = bit 1, z = bit 0 (`corner`).
         let yz = [g.y * g.z, g.y * f.z, f.y * g.z, f.y * f.z];
         let (cx0, cx1) = (c * g.x, c * f.x);
-        for n in 0..4 {
-            sum.weights[n] += cx0 * yz[n];
-            sum.weights[4 + n] += cx1 * yz[n];
+        let (lo, hi) = sum.weights.split_at_mut(4);
+        for ((w0, w1), w) in lo.iter_mut().zip(hi).zip(yz) {
+            *w0 += cx0 * w;
+            *w1 += cx1 * w;
         }
     }
 
