@@ -29,7 +29,7 @@ use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
 use crate::volume::bricks::{BrickSampler, Bricks};
 use crate::volume::dda::{clip_to_box, Occupancy};
-use crate::volume::sampler::floor_to_int;
+use crate::volume::sampler::floor_split;
 use crate::volume::sparse::corner;
 use crate::volume::SparseGrid;
 
@@ -131,8 +131,7 @@ impl InScatter for TransferRadiance {
     #[inline]
     fn add(&self, p: Vec3, c: f32, sum: &mut CellSum) {
         let q = p * self.inv_k;
-        let b = floor_to_int(q);
-        let f = q - b.as_vec3();
+        let (b, f) = floor_split(q);
         if sum.base != Some(b) {
             self.flush(sum);
             sum.base = Some(b);

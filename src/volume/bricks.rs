@@ -18,7 +18,7 @@ use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
 use rayon::prelude::*;
 
-use crate::volume::sampler::{floor_to_int, BlockSampler};
+use crate::volume::sampler::{floor_split, BlockSampler};
 use crate::volume::sparse::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// Voxels along a brick edge: a leaf plus the apron it shares with its upper neighbours.
@@ -159,7 +159,7 @@ impl<'a> BrickSampler<'a> {
     /// instructions saving and restoring registers.
     #[inline(always)]
     pub fn sample(&mut self, p: Vec3) -> f32 {
-        let i0 = floor_to_int(p);
+        let (i0, f) = floor_split(p);
         let key = i0 >> LEAF_LOG2;
         if key != self.key {
             self.key = key;
@@ -173,7 +173,7 @@ impl<'a> BrickSampler<'a> {
                 // One bounds check for the cell's whole reach instead of one per corner.
                 let cell = &brick[base..base + CELL_REACH];
                 let c: [f32; 8] = std::array::from_fn(|n| cell[CORNER_OFFSETS[n]]);
-                trilinear(c, p - i0.as_vec3())
+                trilinear(c, f)
             }
             Some(Entry::Uniform(v)) => v,
             None => self.sample_fallback(p),
