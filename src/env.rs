@@ -8,6 +8,7 @@ use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 
 use crate::error::{Error, Result};
+use crate::floor::floor;
 use crate::sh::{self, ShRgb};
 
 /// The `--env` value that selects the built-in sky instead of a file.
@@ -175,13 +176,19 @@ impl Environment {
     /// Bilinear radiance arriving from the unit direction `dir`; periodic in u, clamped in v.
     pub fn lookup(&self, dir: [f64; 3]) -> [f32; 3] {
         let (u, v) = dir_to_uv(dir);
+        // u ∈ [0, 1], so x ∈ [−0.5, w − 0.5] and its floor lies in [−1, w − 1]: the columns wrap
+        // with one compare each, where `rem_euclid` is an integer division per lookup (every
+        // background pixel makes one).
         let x = u * self.width as f64 - 0.5;
         let y = (v * self.height as f64 - 0.5).clamp(0.0, (self.height - 1) as f64);
-        let (x0, y0) = (x.floor(), y.floor());
-        let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
-        let w = self.width as i64;
-        let c0 = (x0 as i64).rem_euclid(w) as usize;
-        let c1 = (x0 as i64 + 1).rem_euclid(w) as usize;
+        let (x0, y0) = (floor(x), floor(y));
+        let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+        let c0 = if x0 < 0 { self.width - 1 } else { x0 as usize };
+        let c1 = if x0 + 1 >= self.width as i32 {
+            0
+        } else {
+            (x0 + 1) as usize
+        };
         let r0 = y0 as usize;
         let r1 = (r0 + 1).min(self.height - 1);
         let p = |r: usize, c: usize| self.pixels[r * self.width + c];
@@ -237,7 +244,9 @@ impl Environment {
 pub fn dir_to_uv(dir: [f64; 3]) -> (f64, f64) {
     let [x, y, z] = dir;
     let theta = y.clamp(-1.0, 1.0).acos();
-    let phi = x.atan2(-z).rem_euclid(2.0 * PI);
+    // atan2 ∈ [−π, π]: one add folds it into [0, 2π], the same value `rem_euclid` gives.
+    let phi = x.atan2(-z);
+    let phi = if phi < 0.0 { phi + 2.0 * PI } else { phi };
     (phi / (2.0 * PI), theta / PI)
 }
 

@@ -8,6 +8,7 @@ pub mod compare;
 pub mod env;
 pub mod env_cmd;
 pub mod error;
+pub mod floor;
 pub mod image;
 pub mod info;
 pub mod pathtrace;

@@ -23,13 +23,13 @@ use glam::{DVec3, IVec3, Vec3};
 use hashbrown::HashMap;
 use indicatif::ProgressBar;
 
+use crate::floor::floor_split;
 use crate::render::camera::{hash_unit, Camera, STREAM_STEP};
 use crate::render::film::{self, Background, Frame, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
 use crate::volume::bricks::{BrickSampler, Bricks};
 use crate::volume::dda::{clip_to_box, Occupancy};
-use crate::volume::sampler::floor_split;
 use crate::volume::sparse::corner;
 use crate::volume::SparseGrid;
 

@@ -18,7 +18,8 @@ use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
 use rayon::prelude::*;
 
-use crate::volume::sampler::{floor_split, BlockSampler};
+use crate::floor::floor_split;
+use crate::volume::sampler::BlockSampler;
 use crate::volume::sparse::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// Voxels along a brick edge: a leaf plus the apron it shares with its upper neighbours.

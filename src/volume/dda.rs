@@ -28,6 +28,7 @@ use std::ops::ControlFlow;
 use glam::{DVec3, IVec3};
 use hashbrown::HashMap;
 
+use crate::floor::floor;
 use crate::volume::sparse::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
@@ -500,14 +501,6 @@ fn max(a: f64, b: f64) -> f64 {
     }
 }
 
-/// `x.floor() as i32` without a libm call (x86-64's baseline has no SSE4.1 `roundsd`); equal to
-/// it for every x, saturating the same way.
-#[inline(always)]
-fn floor(x: f64) -> i32 {
-    let t = x as i32;
-    t.saturating_sub((x < t as f64) as i32)
-}
-
 /// Amanatides–Woo walk over cells of edge 2^`log2` voxels, from t0 to t1, cells clamped to
 /// `range` (so a walk started on a node face stays in that node). Calls `visit(cell, ta, tb)` for
 /// every cell crossed over a non-empty interval.
@@ -757,29 +750,6 @@ mod tests {
         assert!(Occupancy::build(&g)
             .spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0)
             .is_empty());
-    }
-
-    #[test]
-    fn floor_is_libm_floor_saturated() {
-        for x in [
-            -3e9,
-            -2147483648.5,
-            -7.5,
-            -1.0,
-            -0.25,
-            -0.0,
-            0.0,
-            0.5,
-            1.0,
-            8.999,
-            2147483647.5,
-            3e9,
-            f64::NAN,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-        ] {
-            assert_eq!(floor(x), x.floor() as i32, "{x}");
-        }
     }
 
     #[test]

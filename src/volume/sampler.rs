@@ -6,7 +6,9 @@
 //! lattice segments use it; the camera march uses [`crate::volume::bricks`] and falls back to it
 //! outside the bricks.
 
-use glam::{IVec3, Vec3, Vec3A};
+use glam::{IVec3, Vec3};
+
+use crate::floor::floor_split;
 
 use crate::volume::sparse::{corner, trilinear, Block, Leaf, SparseGrid, LEAF_DIM, LEAF_LOG2};
 
@@ -87,71 +89,11 @@ impl<'a> BlockSampler<'a> {
     }
 }
 
-/// `p.floor()` as integers, and the fraction `p − floor(p)`, for |p| < 2³¹ (index coordinates of
-/// any real grid). Every trilinear sample starts here, twice per march step, so on x86-64 it is four
-/// SSE2 instructions for all three axes (and three lane moves): the baseline has no SSE4.1 `roundps` (`floorf` was a
-/// tenth of the march's time), and scalar `as i32` casts saturate at a dozen instructions each.
-/// The fraction is the same IEEE subtraction either way, so results are bit-identical.
-#[inline(always)]
-pub fn floor_split(p: Vec3) -> (IVec3, Vec3) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::*;
-        // SAFETY: SSE2 is part of the x86-64 baseline, so these intrinsics are always available;
-        // they only read and write registers.
-        unsafe {
-            let v: __m128 = Vec3A::from(p).into();
-            // Truncation toward zero, then −1 (all bits set) where it went up: negative
-            // non-integers.
-            let t = _mm_cvttps_epi32(v);
-            let up = _mm_castps_si128(_mm_cmplt_ps(v, _mm_cvtepi32_ps(t)));
-            let i = _mm_add_epi32(t, up);
-            let f: Vec3A = _mm_sub_ps(v, _mm_cvtepi32_ps(i)).into();
-            let lane = |m: __m128i| _mm_cvtsi128_si32(m);
-            let i3 = IVec3::new(
-                lane(i),
-                lane(_mm_shuffle_epi32::<0b01>(i)),
-                lane(_mm_shuffle_epi32::<0b10>(i)),
-            );
-            (i3, Vec3::from(f))
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let t = p.as_ivec3(); // truncates toward zero
-        let i = t - IVec3::from(p.cmplt(t.as_vec3()));
-        (i, p - i.as_vec3())
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::volume::sparse::{TileLevel, LEAF_VOXELS};
     use crate::volume::Transform;
-
-    #[test]
-    fn floor_split_is_floor_and_fraction() {
-        for x in [
-            -2.0f32,
-            -1.5,
-            -1.0,
-            -0.25,
-            -0.0,
-            0.0,
-            0.3,
-            1.0,
-            7.999,
-            8.0,
-            -1e-7,
-            1e6 + 0.5,
-        ] {
-            let p = Vec3::new(x, -x, x * 3.0);
-            let (i, f) = floor_split(p);
-            assert_eq!(i, p.floor().as_ivec3(), "{x}");
-            assert_eq!(f, p - p.floor(), "{x}");
-        }
-    }
 
     #[test]
     fn bit_identical_to_sample_index() {
