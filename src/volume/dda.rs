@@ -75,8 +75,31 @@ impl BlockCell {
     }
 }
 
-/// One bit per block of a node (16³ blocks).
-type BlockMask = [u64; 1 << (3 * BLOCKS_PER_NODE_LOG2 - 6)];
+/// Words of one bit per block of a node (16³ blocks).
+const MASK_WORDS: usize = 1 << (3 * BLOCKS_PER_NODE_LOG2 - 6);
+
+/// The occupied blocks of a partial node: bit `x·256 + y·16 + z` (block offsets in the node) says
+/// whether a block is occupied, and its cell is found by rank in [`Occupancy::cells`] — a bit
+/// test for an empty block and a popcount for an occupied one, where a hash lookup cost several
+/// times more in the DDA's innermost loop.
+struct NodeBlocks {
+    mask: [u64; MASK_WORDS],
+    /// Per mask word, the index in [`Occupancy::cells`] of the cell of its lowest set bit.
+    first: [u32; MASK_WORDS],
+}
+
+impl NodeBlocks {
+    /// The cell of block `b` (absolute key, inside this node), `None` when it is empty.
+    #[inline]
+    fn cell<'a>(&self, cells: &'a [BlockCell], b: IVec3) -> Option<&'a BlockCell> {
+        let (word, bit) = mask_bit(b);
+        let w = self.mask[word];
+        (w >> bit & 1 == 1).then(|| {
+            let below = (w & ((1u64 << bit) - 1)).count_ones();
+            &cells[(self.first[word] + below) as usize]
+        })
+    }
+}
 
 /// The bit of block `b` (absolute key) in its node's [`BlockMask`]: (word, bit).
 #[inline]
@@ -91,20 +114,19 @@ fn mask_bit(b: IVec3) -> (usize, u32) {
 enum NodeCell {
     /// Every block is occupied; the value bounds the density of the whole node.
     Dense(f32),
-    /// Some blocks are occupied: which ones is bit `x·256 + y·16 + z` (block offsets in the node)
-    /// of the mask at this index of [`Occupancy::masks`], so an empty block costs a bit test
-    /// instead of a hash lookup; occupied ones are looked up in the block map.
+    /// Some blocks are occupied: the ones in [`Occupancy::partial`] at this index.
     Partial(u32),
 }
 
 /// The dilated occupancy of a grid, built once and shared by every ray.
 pub struct Occupancy {
-    /// Occupied blocks (key = voxel >> 3) of partial nodes, with their dilated maximum and part.
-    blocks: HashMap<IVec3, BlockCell>,
     /// Nodes (key = voxel >> 7) that hold any occupied block.
     nodes: HashMap<IVec3, NodeCell>,
-    /// Occupied-block masks of the partial nodes.
-    masks: Vec<BlockMask>,
+    /// The occupied blocks of each partial node.
+    partial: Vec<NodeBlocks>,
+    /// Occupied blocks of partial nodes, with their dilated maximum and part: node by node in
+    /// the order of `partial`, each node's in mask-bit order.
+    cells: Vec<BlockCell>,
     /// Root tiles (key = voxel >> 12): every node inside is dense; the value bounds the density of
     /// the tile and its one-voxel surroundings.
     roots: HashMap<IVec3, f32>,
@@ -238,21 +260,44 @@ impl Occupancy {
                 *m = m.max(v);
             }
         }
-        let mut nodes: HashMap<IVec3, NodeCell> = HashMap::new();
-        let mut masks: Vec<BlockMask> = Vec::new();
+        let mut nodes: HashMap<IVec3, NodeCell> = dense
+            .iter()
+            .map(|(&n, &v)| (n, NodeCell::Dense(v)))
+            .collect();
+        // Partial nodes: their masks first, then their cells gathered in rank order.
+        let mut partial: Vec<(IVec3, [u64; MASK_WORDS])> = Vec::new();
         for &b in blocks.keys() {
             let cell = nodes.entry(b >> BLOCKS_PER_NODE_LOG2).or_insert_with(|| {
-                masks.push([0; 64]);
-                NodeCell::Partial(masks.len() as u32 - 1)
+                partial.push((b >> BLOCKS_PER_NODE_LOG2, [0; MASK_WORDS]));
+                NodeCell::Partial(partial.len() as u32 - 1)
             });
             if let NodeCell::Partial(m) = *cell {
                 let (word, bit) = mask_bit(b);
-                masks[m as usize][word] |= 1 << bit;
+                partial[m as usize].1[word] |= 1 << bit;
             }
         }
-        for (&n, &v) in &dense {
-            nodes.insert(n, NodeCell::Dense(v));
-        }
+        let mut cells = Vec::with_capacity(blocks.len());
+        let partial = partial
+            .into_iter()
+            .map(|(node, mask)| {
+                let mut first = [0; MASK_WORDS];
+                for (word, &bits) in mask.iter().enumerate() {
+                    first[word] = cells.len() as u32;
+                    let mut rest = bits;
+                    while rest != 0 {
+                        let i = word as i32 * 64 + rest.trailing_zeros() as i32;
+                        let offset = IVec3::new(
+                            i >> (2 * BLOCKS_PER_NODE_LOG2),
+                            i >> BLOCKS_PER_NODE_LOG2,
+                            i,
+                        ) & ((1 << BLOCKS_PER_NODE_LOG2) - 1);
+                        cells.push(blocks[&((node << BLOCKS_PER_NODE_LOG2) + offset)]);
+                        rest &= rest - 1;
+                    }
+                }
+                NodeBlocks { mask, first }
+            })
+            .collect();
         // Bounds: every occupied cell (root interiors are enclosed by their dense ring nodes).
         let mut lo = DVec3::INFINITY;
         let mut hi = DVec3::NEG_INFINITY;
@@ -268,9 +313,9 @@ impl Occupancy {
         });
         let bounds = (lo.x <= hi.x).then_some((lo, hi));
         Occupancy {
-            blocks,
             nodes,
-            masks,
+            partial,
+            cells,
             roots,
             bounds,
         }
@@ -342,24 +387,19 @@ impl Occupancy {
                 match self.node(node) {
                     Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
                     Some(NodeCell::Partial(m)) => {
-                        let mask = &self.masks[m as usize];
+                        let blocks = &self.partial[m as usize];
                         let blo = node << BLOCKS_PER_NODE_LOG2;
                         let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
                         let b_log2 = LEAF_LOG2 as i32;
                         walk(origin, dir, inv, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
-                            let (word, bit) = mask_bit(b);
-                            let part = if mask[word] >> bit & 1 == 0 {
-                                None
-                            } else {
-                                match self.blocks.get(&b) {
-                                    Some(c) if c.is_full() => Some((tc, td, c.max)),
-                                    Some(c) => {
-                                        let (lo, hi) = c.bounds(b);
-                                        clip_inv(origin, inv, tc, td, lo, hi)
-                                            .map(|(a, b)| (a, b, c.max))
-                                    }
-                                    None => None,
+                            let part = match blocks.cell(&self.cells, b) {
+                                Some(c) if c.is_full() => Some((tc, td, c.max)),
+                                Some(c) => {
+                                    let (lo, hi) = c.bounds(b);
+                                    clip_inv(origin, inv, tc, td, lo, hi)
+                                        .map(|(a, b)| (a, b, c.max))
                                 }
+                                None => None,
                             };
                             match part {
                                 Some((a, b, m)) => {
