@@ -10,7 +10,6 @@ pub mod relight;
 use std::time::{Duration, Instant};
 
 use glam::{DVec3, Vec3};
-use rayon::prelude::*;
 
 pub use camera::Camera;
 pub use film::{Background, Frame, RayResult};
@@ -18,7 +17,7 @@ pub use march::{render, MarchSettings, MarchStats, Scene};
 pub use relight::{relight, Radiance};
 
 use crate::error::Result;
-use crate::image::ImageBuf;
+use crate::image::{ImageBuf, Layer};
 use crate::transfer::Transfer;
 use crate::volume::dda::Occupancy;
 use crate::volume::SparseGrid;
@@ -114,28 +113,29 @@ impl Frame {
     /// The frame as an image to write: RGBA (premultiplied, as [`ImageBuf`] expects) plus the
     /// `direct.{R,G,B}`, `indirect.{R,G,B}` and `depth.Z` layers, which EXR keeps and PNG ignores.
     pub fn into_image(self) -> ImageBuf {
-        // The six colour planes are split in parallel: 8 MB each at 1080p.
-        let mut extra: Vec<(String, Vec<f32>)> =
-            [("direct", &self.direct), ("indirect", &self.indirect)]
-                .into_par_iter()
-                .flat_map(|(layer, values)| {
-                    ["R", "G", "B"]
-                        .into_par_iter()
-                        .enumerate()
-                        .map(move |(c, name)| {
-                            (
-                                format!("{layer}.{name}"),
-                                values.iter().map(|p| p[c]).collect(),
-                            )
-                        })
-                })
-                .collect();
-        extra.push(("depth.Z".to_string(), self.depth));
+        // The buffers move over as they are: the EXR writer reads interleaved channels in place.
+        let rgb = &["R", "G", "B"];
         ImageBuf {
             width: self.width as usize,
             height: self.height as usize,
             rgba: self.rgba,
-            extra,
+            layers: vec![
+                Layer {
+                    name: "direct",
+                    channels: rgb,
+                    values: self.direct.into_flattened(),
+                },
+                Layer {
+                    name: "indirect",
+                    channels: rgb,
+                    values: self.indirect.into_flattened(),
+                },
+                Layer {
+                    name: "depth",
+                    channels: &["Z"],
+                    values: self.depth,
+                },
+            ],
         }
     }
 }
@@ -234,21 +234,18 @@ mod tests {
         assert!(frame.direct[centre][0] > 0.1);
         assert!((frame.direct[centre][0] - frame.indirect[centre][0]).abs() < 1e-5);
         let image = frame.clone().into_image();
-        let names: Vec<&str> = image.extra.iter().map(|(n, _)| n.as_str()).collect();
+        let names: Vec<(&str, &[&str])> =
+            image.layers.iter().map(|l| (l.name, l.channels)).collect();
+        let rgb: &[&str] = &["R", "G", "B"];
         assert_eq!(
             names,
-            [
-                "direct.R",
-                "direct.G",
-                "direct.B",
-                "indirect.R",
-                "indirect.G",
-                "indirect.B",
-                "depth.Z"
-            ]
+            [("direct", rgb), ("indirect", rgb), ("depth", &["Z"][..])]
         );
-        assert_eq!(image.extra[4].1[centre], frame.indirect[centre][1]);
-        assert_eq!(image.extra[6].1, frame.depth);
+        assert_eq!(
+            image.layers[1].values[centre * 3 + 1],
+            frame.indirect[centre][1]
+        );
+        assert_eq!(image.layers[2].values, frame.depth);
         assert_eq!(image.rgba, frame.rgba);
     }
 }
