@@ -79,25 +79,6 @@ where
 {
     let (w, h) = (camera.width, camera.height);
     let spp = spp.max(1);
-    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE))
-        .flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE)))
-        .collect();
-    progress.set_length(tiles.len() as u64);
-    let rendered: Vec<(Vec<Pixel>, St)> = tiles
-        .par_iter()
-        .map(|&(x0, y0)| {
-            let mut stats = St::default();
-            let mut pixels = Vec::with_capacity((TILE * TILE) as usize);
-            for y in y0..(y0 + TILE).min(h) {
-                for x in x0..(x0 + TILE).min(w) {
-                    pixels.push(pixel(camera, spp, background, x, y, &trace, &mut stats));
-                }
-            }
-            progress.inc(1);
-            (pixels, stats)
-        })
-        .collect();
-    progress.finish_and_clear();
     let n = (w as usize) * (h as usize);
     let mut frame = Frame {
         width: w,
@@ -107,36 +88,78 @@ where
         indirect: vec![[0.0; 3]; n],
         depth: vec![0.0; n],
     };
-    let (tile_pixels, tile_stats): (Vec<Vec<Pixel>>, Vec<St>) = rendered.into_iter().unzip();
-    let mut stats = St::default();
-    for s in tile_stats {
-        stats += s;
-    }
-    let tiles_per_row = w.div_ceil(TILE) as usize;
-    // Each band of TILE image rows is filled by one task: a 1080p frame's four buffers are 90 MB,
-    // too much to copy (and fault in) on one thread while the other cores wait.
+    progress.set_length((w.div_ceil(TILE) * h.div_ceil(TILE)) as u64);
+    // Pixels go straight into the frame: each band of TILE rows is cut into the row segments of
+    // its tiles, and the tiles of every band run in parallel. (Rendering tiles into buffers of
+    // their own and copying them over cost a second 90 MB at 1080p, faulted in and copied.)
     let band = (TILE * w) as usize;
-    frame
+    let tile_stats: Vec<St> = frame
         .rgba
         .par_chunks_mut(band)
         .zip(frame.direct.par_chunks_mut(band))
         .zip(frame.indirect.par_chunks_mut(band))
         .zip(frame.depth.par_chunks_mut(band))
-        .zip(tile_pixels.par_chunks(tiles_per_row))
-        .for_each(|((((rgba, direct), indirect), depth), tiles)| {
-            for (t, pixels) in tiles.iter().enumerate() {
-                let x0 = t * TILE as usize;
-                let tw = (TILE as usize).min(w as usize - x0);
-                for (i, p) in pixels.iter().enumerate() {
-                    let at = (i / tw) * w as usize + x0 + i % tw;
-                    rgba[at] = p.rgba;
-                    direct[at] = p.direct;
-                    indirect[at] = p.indirect;
-                    depth[at] = p.depth;
+        .enumerate()
+        .flat_map(|(b, (((rgba, direct), indirect), depth))| {
+            let mut tiles: Vec<Vec<Row>> = (0..w.div_ceil(TILE)).map(|_| Vec::new()).collect();
+            let rows = rgba
+                .chunks_mut(w as usize)
+                .zip(direct.chunks_mut(w as usize))
+                .zip(indirect.chunks_mut(w as usize))
+                .zip(depth.chunks_mut(w as usize));
+            for (((rgba, direct), indirect), depth) in rows {
+                let segments = rgba
+                    .chunks_mut(TILE as usize)
+                    .zip(direct.chunks_mut(TILE as usize))
+                    .zip(indirect.chunks_mut(TILE as usize))
+                    .zip(depth.chunks_mut(TILE as usize));
+                for (tile, (((rgba, direct), indirect), depth)) in tiles.iter_mut().zip(segments) {
+                    tile.push(Row {
+                        rgba,
+                        direct,
+                        indirect,
+                        depth,
+                    });
                 }
             }
-        });
+            let y0 = b as u32 * TILE;
+            tiles
+                .into_par_iter()
+                .enumerate()
+                .map(move |(t, rows)| (t as u32 * TILE, y0, rows))
+        })
+        .map(|(x0, y0, rows)| {
+            let mut stats = St::default();
+            for (dy, row) in rows.into_iter().enumerate() {
+                let y = y0 + dy as u32;
+                for (dx, rgba) in row.rgba.iter_mut().enumerate() {
+                    let x = x0 + dx as u32;
+                    let p = pixel(camera, spp, background, x, y, &trace, &mut stats);
+                    *rgba = p.rgba;
+                    row.direct[dx] = p.direct;
+                    row.indirect[dx] = p.indirect;
+                    row.depth[dx] = p.depth;
+                }
+            }
+            progress.inc(1);
+            stats
+        })
+        .collect();
+    progress.finish_and_clear();
+    // Summed in tile order, so the totals never depend on scheduling.
+    let mut stats = St::default();
+    for s in tile_stats {
+        stats += s;
+    }
     (frame, stats)
+}
+
+/// One image row's part of a tile, in the frame's buffers.
+struct Row<'a> {
+    rgba: &'a mut [[f32; 4]],
+    direct: &'a mut [[f32; 3]],
+    indirect: &'a mut [[f32; 3]],
+    depth: &'a mut [f32],
 }
 
 /// One finished pixel.
