@@ -201,17 +201,20 @@ impl ImageBuf {
                 ExrPrecision::Float => 4,
                 ExrPrecision::Half => 2,
             };
-            let mut data = Vec::with_capacity(rows.len() * w * views.len() * bytes);
+            let mut data = vec![0u8; rows.len() * w * views.len() * bytes];
+            let mut out = data.chunks_exact_mut(w * bytes);
             for y in rows {
                 for v in &views {
                     let first = (y * width + x) * v.stride + v.offset;
-                    let row = v.values[first..].iter().step_by(v.stride).take(w);
+                    let row = v.values[first..].iter().step_by(v.stride);
+                    let Some(line) = out.next() else { break };
+                    let samples = line.chunks_exact_mut(bytes).zip(row);
                     match precision {
                         ExrPrecision::Float => {
-                            row.for_each(|v| data.extend_from_slice(&v.to_ne_bytes()))
+                            samples.for_each(|(o, v)| o.copy_from_slice(&v.to_ne_bytes()))
                         }
-                        ExrPrecision::Half => row
-                            .for_each(|v| data.extend_from_slice(&f16::from_f32(*v).to_ne_bytes())),
+                        ExrPrecision::Half => samples
+                            .for_each(|(o, v)| o.copy_from_slice(&f16::from_f32(*v).to_ne_bytes())),
                     }
                 }
             }
