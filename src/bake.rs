@@ -11,6 +11,7 @@ use crate::cli::{BakeCmd, BakeConfig, GlobalArgs};
 use crate::error::{Error, Result};
 use crate::transfer::cache::{self, Source};
 use crate::transfer::{self, BakeSettings, BakeStats, MemoryEstimate, Transfer, TransferLayout};
+use crate::volume::bricks::Bricks;
 use crate::volume::{load_density, SparseGrid};
 
 /// Share of available memory a bake may plan to use by default: the rest stays for the system
@@ -67,9 +68,11 @@ pub fn bake_checked(
 ) -> Result<Option<(Transfer, BakeStats)>> {
     let layout = TransferLayout::build(density, config.settings.scale);
     let threads = rayon::current_num_threads();
+    let bricks = Bricks::planned_bytes(density);
     let estimate = |settings: &BakeSettings, voxels: usize| {
         MemoryEstimate::new(
             density.memory_bytes(),
+            bricks,
             layout.memory_bytes(),
             voxels,
             settings,

@@ -89,18 +89,19 @@ pub fn bake(
     // over the density around them (the footprint means the renderer's values are fitted to).
     let clock = std::time::Instant::now();
     let bar = crate::progress::bar(2 * layout.len() as u64, "single", quiet);
+    let depth = crate::volume::transmittance::OpticalDepth::new(density, medium.sigma_t, true);
     let single = |origins| {
         let single = single::SingleSettings {
             bands: settings.bands,
             samples: settings.samples,
             seed: settings.seed,
-            skip_empty: true,
             origins,
         };
-        single::bake_single(density, &layout, medium, single, &bar)
+        single::bake_single(density, &layout, &depth, single, &bar)
     };
     let point = single(single::Origins::Node);
     let mut t_ri = single(single::Origins::Footprint);
+    drop(depth);
     fit::least_squares(density, &layout, &mut t_ri, settings.bands * settings.bands);
     bar.finish_and_clear();
     stats.single_seconds = clock.elapsed().as_secs_f64();
@@ -153,8 +154,11 @@ pub struct MemoryEstimate {
 }
 
 impl MemoryEstimate {
+    /// `bricks_bytes`: the density's sampling bricks, which the single-scattering phase holds
+    /// ([`crate::volume::bricks::Bricks::planned_bytes`]).
     pub fn new(
         density_bytes: usize,
+        bricks_bytes: usize,
         layout_bytes: usize,
         voxels: usize,
         settings: &BakeSettings,
@@ -164,8 +168,8 @@ impl MemoryEstimate {
         let one = n * c * 4;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         // Single: the point values kept beside the fitted T_ri, and batch results before they
-        // are scattered into either (two more copies of T_ri).
-        let single = 2 * one + sets;
+        // are scattered into either (two more copies of T_ri); the density's bricks.
+        let single = 2 * one + sets + bricks_bytes as u64;
         // Lattice: per-chunk results (one more copy); per link a target and four segment values
         // (20 bytes) and a sweep-order entry (4); four chunk buffers a thread.
         let d = settings.lattice.directions() as u64;

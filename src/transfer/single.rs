@@ -12,7 +12,6 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
 use super::grid::TransferLayout;
-use super::Medium;
 use crate::sh;
 use crate::volume::transmittance::OpticalDepth;
 use crate::volume::SparseGrid;
@@ -105,22 +104,21 @@ pub struct SingleSettings {
     pub bands: usize,
     pub samples: usize,
     pub seed: u64,
-    /// Skip empty space (off only to prove that skipping changes nothing).
-    pub skip_empty: bool,
     pub origins: Origins,
 }
 
-/// T_ri for every transfer voxel of `layout`, `layout.len() × bands²`.
+/// T_ri for every transfer voxel of `layout`, `layout.len() × bands²`, through the optical depth
+/// of `density` that `depth` integrates (built once for both passes of a bake: it holds the
+/// density's bricks and occupancy).
 pub fn bake_single(
     density: &SparseGrid,
     layout: &TransferLayout,
-    medium: Medium,
+    depth: &OpticalDepth,
     settings: SingleSettings,
     progress: &indicatif::ProgressBar,
 ) -> Vec<f32> {
     let coeffs = settings.bands * settings.bands;
     let sets = direction_sets(settings.samples, settings.bands, settings.seed);
-    let depth = OpticalDepth::new(density, medium.sigma_t, settings.skip_empty);
     let mut by_set: Vec<Vec<u32>> = vec![Vec::new(); DIRECTION_SETS];
     for (slot, v) in layout.voxels().iter().enumerate() {
         by_set[set_of(*v, settings.seed)].push(slot as u32);
@@ -213,21 +211,16 @@ mod tests {
         block.insert_tile(crate::volume::TileLevel::Block, IVec3::ZERO, 1.0);
         let layout = TransferLayout::build(&block, 6);
         let density = SparseGrid::new(Default::default(), 0.0);
-        let medium = Medium {
-            sigma_t: 1.0,
-            albedo: 0.5,
-        };
         let settings = SingleSettings {
             bands: 4,
             samples: 512,
             seed: 1,
-            skip_empty: true,
             origins: Origins::Node,
         };
         let t = bake_single(
             &density,
             &layout,
-            medium,
+            &OpticalDepth::new(&density, 1.0, true),
             settings,
             &indicatif::ProgressBar::hidden(),
         );

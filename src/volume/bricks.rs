@@ -1,4 +1,5 @@
-//! Apron bricks for the camera march: the trilinear density as plain array indexing.
+//! Apron bricks for the camera march and the bake's T_ri rays: the trilinear density as plain array
+//! indexing.
 //!
 //! A trilinear sample whose lower corner `floor(p)` lies in block B (key = voxel >> 3) reads the
 //! voxels `floor(p) + {0,1}³`, all inside `8B + [0, 8]³`. A *brick* stores exactly those 9³ values
@@ -51,7 +52,7 @@ enum Entry {
     Uniform(f32),
 }
 
-/// The bricks of one grid, built once per render and shared by every ray.
+/// The bricks of one grid, built once per render (or per bake's T_ri) and shared by every ray.
 pub struct Bricks {
     entries: HashMap<IVec3, Entry>,
     values: Vec<Brick>,
@@ -59,26 +60,12 @@ pub struct Bricks {
 
 impl Bricks {
     pub fn build(grid: &SparseGrid) -> Bricks {
-        let sources = grid
-            .leaves()
-            .iter()
-            .map(|l| l.origin)
-            .chain(grid.tiles(TileLevel::Block).map(|(o, _)| o));
-        let mut keys: Vec<IVec3> = sources
-            .flat_map(|o| {
-                let key = o >> LEAF_LOG2 as i32;
-                (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
-            })
-            .collect();
-        // Sorted (x-major, as leaves are stored) so neighbouring bricks sit near each other.
-        keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
-        keys.dedup();
         // Each entry is independent: built in parallel, then numbered in key order (deterministic).
         // `Ok` is a uniform value, `Err` a brick.
-        let built: Vec<(IVec3, Result<f32, Box<Brick>>)> = keys
+        let built: Vec<(IVec3, Result<f32, Box<Brick>>)> = keys(grid)
             .par_iter()
             .map(|&key| {
-                let blocks: [Block; 8] = std::array::from_fn(|n| grid.block(key + corner(n)));
+                let blocks = window(grid, key);
                 (key, uniform(&blocks).ok_or_else(|| fill(&blocks)))
             })
             .collect();
@@ -99,9 +86,48 @@ impl Bricks {
 
     /// Bytes held: the brick values and the entry map (key, value and a control byte per slot).
     pub fn memory_bytes(&self) -> usize {
-        self.values.capacity() * std::mem::size_of::<Brick>()
-            + self.entries.capacity() * (std::mem::size_of::<(IVec3, Entry)>() + 1)
+        bytes(self.values.capacity(), self.entries.capacity())
     }
+
+    /// What [`Bricks::build`] will take for `grid`, counted without filling a brick: for memory
+    /// estimates made before a bake.
+    pub fn planned_bytes(grid: &SparseGrid) -> usize {
+        let keys = keys(grid);
+        let bricks = keys
+            .par_iter()
+            .filter(|&&key| uniform(&window(grid, key)).is_none())
+            .count();
+        bytes(bricks, keys.len())
+    }
+}
+
+/// The blocks that get an entry: every block within one of a leaf or a block tile, sorted
+/// (x-major, as leaves are stored) so neighbouring bricks sit near each other.
+fn keys(grid: &SparseGrid) -> Vec<IVec3> {
+    let sources = grid
+        .leaves()
+        .iter()
+        .map(|l| l.origin)
+        .chain(grid.tiles(TileLevel::Block).map(|(o, _)| o));
+    let mut keys: Vec<IVec3> = sources
+        .flat_map(|o| {
+            let key = o >> LEAF_LOG2 as i32;
+            (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
+        })
+        .collect();
+    keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
+    keys.dedup();
+    keys
+}
+
+/// The eight blocks a brick at `key` reads: `key + {0,1}³`, ordered as [`corner`].
+fn window(grid: &SparseGrid, key: IVec3) -> [Block<'_>; 8] {
+    std::array::from_fn(|n| grid.block(key + corner(n)))
+}
+
+/// Memory of `bricks` filled bricks and a map of `entries`.
+fn bytes(bricks: usize, entries: usize) -> usize {
+    bricks * std::mem::size_of::<Brick>() + entries * (std::mem::size_of::<(IVec3, Entry)>() + 1)
 }
 
 /// The value of eight blocks that are all the same constant, if they are.
@@ -214,6 +240,10 @@ mod tests {
         g.insert_leaf(IVec3::new(-8, 0, 0), [u64::MAX; 8], values);
         let bricks = Bricks::build(&g);
         assert!(bricks.memory_bytes() > bricks.values.len() * BRICK_VOXELS * 4);
+        assert_eq!(
+            Bricks::planned_bytes(&g),
+            bytes(bricks.values.len(), bricks.entries.len())
+        );
         assert!(!bricks.values.is_empty());
         let mut sampler = BrickSampler::new(&bricks, &g);
         // A wandering walk that crosses block faces, edges and corners, forwards and backwards.

@@ -2,9 +2,9 @@
 //! blocks around the last sample. Consecutive steps of a ray mostly stay in one block, so the hash
 //! lookups (one for the leaf map plus up to three for tiles, per block) are paid once per block
 //! crossed instead of once — or eight times at a block edge — per sample. Results are bit-identical
-//! to `sample_index`: same corner values, same blend. It needs no setup, so the bake's T_ri and
-//! lattice segments use it; the camera march uses [`crate::volume::bricks`] and falls back to it
-//! outside the bricks.
+//! to `sample_index`: same corner values, same blend. It needs no setup, so the bake's lattice
+//! segments use it; the camera march and the bake's T_ri rays use [`crate::volume::bricks`] and
+//! fall back to it outside the bricks.
 
 use glam::{IVec3, Vec3};
 

@@ -7,8 +7,8 @@ use glam::Vec3;
 
 use std::ops::ControlFlow;
 
+use super::bricks::{BrickSampler, Bricks};
 use super::dda::Occupancy;
-use super::sampler::BlockSampler;
 use super::sparse::SparseGrid;
 
 /// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
@@ -31,6 +31,10 @@ pub struct OpticalDepth<'a> {
     hi: Vec3,
     /// Occupied spans for skipping; `None` marches the whole box (to prove skipping is exact).
     occupancy: Option<Occupancy>,
+    /// The density as apron bricks: T_ri rays cross a block boundary every few steps, and a brick
+    /// costs one lookup per block where the 2×2×2 block sampler paid up to eight (measured: the
+    /// single-scattering phase of torus300 28 s → 14 s, the same values).
+    bricks: Bricks,
 }
 
 impl<'a> OpticalDepth<'a> {
@@ -48,6 +52,7 @@ impl<'a> OpticalDepth<'a> {
             lo,
             hi,
             occupancy: skip_empty.then(|| Occupancy::build(grid)),
+            bricks: Bricks::build(grid),
         }
     }
 
@@ -86,7 +91,7 @@ impl<'a> OpticalDepth<'a> {
         }
         let step = self.step;
         let steps = (end / step).ceil() as u32;
-        let mut sampler = BlockSampler::new(self.grid);
+        let mut sampler = BrickSampler::new(&self.bricks, self.grid);
         let mut tau = 0.0f32;
         // Samples whose positions fall in [t0, t1): spans are half-open, so none is taken twice.
         let mut march = |t0: f64, t1: f64| {

@@ -206,13 +206,12 @@ fn t_ri_agrees_with_a_brute_force_reference() {
         bands,
         samples: 512,
         seed: 3,
-        skip_empty: true,
         origins: Origins::Node,
     };
     let t = bake_single(
         &d,
         &layout,
-        medium,
+        &OpticalDepth::new(&d, medium.sigma_t, true),
         single,
         &indicatif::ProgressBar::hidden(),
     );
@@ -261,10 +260,10 @@ fn empty_space_skipping_changes_no_result() {
             bands: 3,
             samples: 64,
             seed: 5,
-            skip_empty,
             origins: Origins::Footprint,
         };
-        bake_single(&d, &layout, medium, s, &indicatif::ProgressBar::hidden())
+        let depth = OpticalDepth::new(&d, medium.sigma_t, skip_empty);
+        bake_single(&d, &layout, &depth, s, &indicatif::ProgressBar::hidden())
     };
     let (a, b) = (run(true), run(false));
     assert_eq!(a, b);
