@@ -56,6 +56,10 @@ enum Entry {
 pub struct Bricks {
     entries: HashMap<IVec3, Entry>,
     values: Vec<Brick>,
+    /// 128³ tiles (key = voxel >> 7) and their values. A block whose 2×2×2 window lies inside one
+    /// is uniform without an entry of its own: a node tile holds 4096 blocks, and sending their
+    /// samples to the fallback sampler doubled the T_ri phase of a tiled 300³ block.
+    node_tiles: HashMap<IVec3, f32>,
 }
 
 impl Bricks {
@@ -81,7 +85,33 @@ impl Bricks {
             };
             entries.insert(key, entry);
         }
-        Bricks { entries, values }
+        let node_tiles = grid
+            .tiles(TileLevel::Node)
+            .map(|(origin, v)| (origin >> TileLevel::Node.log2() as i32, v))
+            .collect();
+        Bricks {
+            entries,
+            values,
+            node_tiles,
+        }
+    }
+
+    /// The entry of block `key`, if it has one or lies inside a node tile with its window.
+    #[inline]
+    fn entry(&self, key: IVec3) -> Option<Entry> {
+        if let Some(&e) = self.entries.get(&key) {
+            return Some(e);
+        }
+        if self.node_tiles.is_empty() {
+            return None;
+        }
+        // The window key + {0,1}³ stays in the node unless the block is on its upper faces.
+        const LAST: i32 = (1 << (TileLevel::Node.log2() - LEAF_LOG2)) - 1;
+        let node = key >> (TileLevel::Node.log2() - LEAF_LOG2) as i32;
+        if (key & LAST).cmplt(IVec3::splat(LAST)).all() {
+            return self.node_tiles.get(&node).map(|&v| Entry::Uniform(v));
+        }
+        None
     }
 
     /// Bytes held: the brick values and the entry map (key, value and a control byte per slot).
@@ -190,7 +220,7 @@ impl<'a> BrickSampler<'a> {
         let key = i0 >> LEAF_LOG2;
         if key != self.key {
             self.key = key;
-            self.entry = self.bricks.entries.get(&key).copied();
+            self.entry = self.bricks.entry(key);
         }
         match self.entry {
             Some(Entry::Brick(b)) => {
@@ -252,6 +282,35 @@ mod tests {
             let a = n as f32 * 0.013;
             p += Vec3::new(a.sin(), (1.7 * a).cos(), (0.6 * a).sin()) * 0.37;
             p = p.clamp(Vec3::splat(-20.0), Vec3::splat(30.0));
+            assert_eq!(
+                sampler.sample(p).to_bits(),
+                g.sample_index(p).to_bits(),
+                "{p}"
+            );
+        }
+    }
+
+    #[test]
+    fn node_tile_interiors_are_uniform_without_entries() {
+        // A 128³ tile beside a leaf: its blocks away from the leaf have no entry, yet sample as
+        // the tile's value without the fallback, except on the node's upper faces (their window
+        // reaches the next node), which the fallback still samples exactly.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        g.insert_tile(TileLevel::Node, IVec3::ZERO, 0.75);
+        g.insert_leaf(IVec3::new(128, 0, 0), [u64::MAX; 8], [2.0; LEAF_VOXELS]);
+        let bricks = Bricks::build(&g);
+        let inside = IVec3::new(5, 7, 3);
+        assert!(!bricks.entries.contains_key(&inside));
+        assert_eq!(bricks.entry(inside), Some(Entry::Uniform(0.75)));
+        assert_eq!(bricks.entry(IVec3::new(15, 7, 3)), None);
+        assert_eq!(bricks.entry(IVec3::new(16, 7, 3)), None);
+        let mut sampler = BrickSampler::new(&bricks, &g);
+        for p in [
+            Vec3::new(44.3, 60.1, 25.9),
+            Vec3::new(127.5, 60.1, 25.9),
+            Vec3::new(-0.5, 3.0, 3.0),
+            Vec3::new(131.2, 3.5, 3.5),
+        ] {
             assert_eq!(
                 sampler.sample(p).to_bits(),
                 g.sample_index(p).to_bits(),

@@ -29,7 +29,7 @@ pub enum TileLevel {
 impl TileLevel {
     pub const ALL: [TileLevel; 3] = [TileLevel::Block, TileLevel::Node, TileLevel::Root];
 
-    pub fn log2(self) -> u32 {
+    pub const fn log2(self) -> u32 {
         self as u32
     }
 
