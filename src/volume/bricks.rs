@@ -96,22 +96,15 @@ impl Bricks {
         }
     }
 
-    /// The entry of block `key`, if it has one or lies inside a node tile with its window.
-    #[inline]
-    fn entry(&self, key: IVec3) -> Option<Entry> {
-        if let Some(&e) = self.entries.get(&key) {
-            return Some(e);
-        }
-        if self.node_tiles.is_empty() {
-            return None;
-        }
+    /// The uniform entry of block `key` when its window lies inside a node tile.
+    fn in_node_tile(&self, key: IVec3) -> Option<Entry> {
         // The window key + {0,1}³ stays in the node unless the block is on its upper faces.
         const LAST: i32 = (1 << (TileLevel::Node.log2() - LEAF_LOG2)) - 1;
         let node = key >> (TileLevel::Node.log2() - LEAF_LOG2) as i32;
-        if (key & LAST).cmplt(IVec3::splat(LAST)).all() {
-            return self.node_tiles.get(&node).map(|&v| Entry::Uniform(v));
+        if self.node_tiles.is_empty() || (key & LAST).cmpeq(IVec3::splat(LAST)).any() {
+            return None;
         }
-        None
+        self.node_tiles.get(&node).map(|&v| Entry::Uniform(v))
     }
 
     /// Bytes held: the brick values and the entry map (key, value and a control byte per slot).
@@ -220,7 +213,7 @@ impl<'a> BrickSampler<'a> {
         let key = i0 >> LEAF_LOG2;
         if key != self.key {
             self.key = key;
-            self.entry = self.bricks.entry(key);
+            self.entry = self.bricks.entries.get(&key).copied();
         }
         match self.entry {
             Some(Entry::Brick(b)) => {
@@ -237,11 +230,16 @@ impl<'a> BrickSampler<'a> {
         }
     }
 
-    /// Samples outside every brick's block (empty space, tile interiors): rare along a march, so
-    /// kept out of line.
+    /// Samples outside every brick's block (empty space, node tiles): rare along a march, so kept
+    /// out of line.
     #[cold]
     #[inline(never)]
     fn sample_fallback(&mut self, p: Vec3) -> f32 {
+        // A block inside a node tile becomes a uniform entry for the rest of its samples.
+        if let Some(entry @ Entry::Uniform(v)) = self.bricks.in_node_tile(self.key) {
+            self.entry = Some(entry);
+            return v;
+        }
         self.fallback.sample(p)
     }
 }
@@ -301,9 +299,9 @@ mod tests {
         let bricks = Bricks::build(&g);
         let inside = IVec3::new(5, 7, 3);
         assert!(!bricks.entries.contains_key(&inside));
-        assert_eq!(bricks.entry(inside), Some(Entry::Uniform(0.75)));
-        assert_eq!(bricks.entry(IVec3::new(15, 7, 3)), None);
-        assert_eq!(bricks.entry(IVec3::new(16, 7, 3)), None);
+        assert_eq!(bricks.in_node_tile(inside), Some(Entry::Uniform(0.75)));
+        assert_eq!(bricks.in_node_tile(IVec3::new(15, 7, 3)), None);
+        assert_eq!(bricks.in_node_tile(IVec3::new(16, 7, 3)), None);
         let mut sampler = BrickSampler::new(&bricks, &g);
         for p in [
             Vec3::new(44.3, 60.1, 25.9),
