@@ -109,7 +109,9 @@ section_bake() {
 # ---------------------------------------------------------------------------------------------
 RES=1920x1080
 STUDIO=fixtures/env/studio.exr
-RUNS="${BENCH_RUNS:-3}"
+# Runs per program for the vdb_render comparison; the ratio is of medians (after one warm-up run
+# each, alternating the programs), so one slow run on this shared machine cannot decide it.
+RUNS="${BENCH_RUNS:-5}"
 
 # compare NAME VDB : vscatter render of the cache vs vdb_render of the VDB, same camera, 1920×1080.
 # vdb_render: single scattering, one light, its defaults (extinction (absorb+scatter) 1.6 per voxel,
@@ -124,24 +126,18 @@ compare_peer() {
     run_timed "render_$name" "${vs_cmd[@]}"; local vs_rc=$RC vs_wall=$WALL vs_rss=$RSS_MB vs_cpu=$CPU l1=$LOAD
     run_timed "vdb_render_$name" "${vr_cmd[@]}"; local vr_rc=$RC vr_wall=$WALL vr_rss=$RSS_MB vr_cpu=$CPU
     local m1="$vs_wall" m2="$vr_wall" how="1 run each" l2
-    l2="$(load)"
     if [ "$vs_rc" = 0 ] && [ "$vr_rc" = 0 ]; then
-        if command -v hyperfine >/dev/null; then
-            hyperfine --runs "$RUNS" --style none --export-json "$LOG/hyperfine_$name.json" \
-                -n vscatter "$(printf '%q ' "${vs_cmd[@]}")" -n vdb_render "$(printf '%q ' "${vr_cmd[@]}")" \
-                >"$LOG/hyperfine_$name.out" 2>&1 || true
-            m1=$(jq -r '.results[0].mean' "$LOG/hyperfine_$name.json" 2>/dev/null | xargs printf %.2f)
-            m2=$(jq -r '.results[1].mean' "$LOG/hyperfine_$name.json" 2>/dev/null | xargs printf %.2f)
-            how="hyperfine mean of $RUNS"
-        else
-            local i
-            for i in 2 3; do
-                run_timed "render_$name.$i" "${vs_cmd[@]}"; m1=$(awk -v a="$m1" -v b="$WALL" 'BEGIN{print (b<a)?b:a}')
-                run_timed "vdb_render_$name.$i" "${vr_cmd[@]}"; m2=$(awk -v a="$m2" -v b="$WALL" 'BEGIN{print (b<a)?b:a}')
-            done
-            how="best of 3"
-        fi
+        # The two programs alternate, so a slow spell of this shared machine slows both alike;
+        # the first runs above were the warm-up.
+        local i a=() b=()
+        for ((i = 0; i < RUNS; i++)); do
+            a+=("$(wall_of "${vs_cmd[@]}")"); b+=("$(wall_of "${vr_cmd[@]}")")
+        done
+        m1=$(median "${a[@]}"); m2=$(median "${b[@]}")
+        how="median of $RUNS, alternating"
+        echo "$name vscatter: ${a[*]} | vdb_render: ${b[*]}" >"$LOG/alternating_$name.txt"
     fi
+    l2="$(load)"
     local r; r=$(ratio "$m1" "$m2")
     printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s | %s\n" "$name" "$m1" "$m2" "$r" "$(verdict "$r" "<=" 0.3)" \
         "$vs_rss" "$vr_rss" "$vs_cpu" "$vr_cpu" "$(j "render_$name" march_seconds %.2f)" "$(j "render_$name" write_seconds %.2f)" \

@@ -20,7 +20,6 @@ apt_install() {   # apt_install PACKAGE... (only as root; otherwise say what is 
 need_tools() {
     [ -x /usr/bin/time ] || apt_install time
     command -v jq >/dev/null || apt_install jq
-    command -v hyperfine >/dev/null || apt_install hyperfine || true   # optional: best of 3 otherwise
 }
 
 # Builds the release binary (retrying while another developer's edit breaks the build) and copies it,
@@ -76,6 +75,17 @@ j() {
     if [ -z "$v" ]; then echo "-"; elif [ -n "${3:-}" ]; then printf "$3" "$v"; else echo "$v"; fi
 }
 
+# wall_of CMD... : wall seconds of one run (bash's microsecond clock), its output discarded
+wall_of() {
+    local t0=$EPOCHREALTIME
+    "$@" >/dev/null 2>&1 || true
+    awk -v a="$t0" -v b="$EPOCHREALTIME" 'BEGIN{ printf "%.3f", b - a }'
+}
+# median VALUES... : the middle value (the mean of the two middle ones for an even count)
+median() {
+    printf "%s\n" "$@" | sort -g | awk '{ v[NR] = $1 } END{
+        if (NR % 2) printf "%.2f", v[(NR + 1) / 2]; else printf "%.2f", (v[NR / 2] + v[NR / 2 + 1]) / 2 }'
+}
 mib() { awk -v b="$1" 'BEGIN{ if (b=="-") print "-"; else printf "%.1f", b/1048576 }'; }
 ratio() { awk -v a="$1" -v b="$2" 'BEGIN{ if (a=="-"||b=="-"||b==0) print "-"; else printf "%.2f", a/b }'; }
 # verdict VALUE OP LIMIT : "ok" or "MISS (x1.23 of target)"
