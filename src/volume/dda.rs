@@ -369,12 +369,12 @@ impl Occupancy {
         if !(origin.is_finite() && dir.is_finite()) || dir == DVec3::ZERO {
             return;
         }
-        let Some((t0, t1)) = clip_to_box(origin, dir, t0, t1, lo, hi) else {
+        let inv = dir.recip();
+        let Some((t0, t1)) = clip_inv(origin, inv, t0, t1, lo, hi) else {
             return;
         };
         let mut pending: Option<Span> = None;
         let whole = (IVec3::MIN, IVec3::MAX);
-        let inv = dir.recip();
         let flow = walk(
             origin,
             dir,
