@@ -202,20 +202,18 @@ impl ImageBuf {
                 ExrPrecision::Half => 2,
             };
             let mut data = vec![0u8; rows.len() * w * views.len() * bytes];
-            let mut out = data.chunks_exact_mut(w * bytes);
-            for y in rows {
-                for v in &views {
-                    let first = (y * width + x) * v.stride + v.offset;
-                    let row = v.values[first..].iter().step_by(v.stride);
-                    let Some(line) = out.next() else { break };
-                    let samples = line.chunks_exact_mut(bytes).zip(row);
-                    match precision {
-                        ExrPrecision::Float => {
-                            samples.for_each(|(o, v)| o.copy_from_slice(&v.to_ne_bytes()))
-                        }
-                        ExrPrecision::Half => samples
-                            .for_each(|(o, v)| o.copy_from_slice(&f16::from_f32(*v).to_ne_bytes())),
+            // Line by line, channel by channel: one output line per (row, channel).
+            let lines = rows.flat_map(|y| views.iter().map(move |v| (y, v)));
+            for (line, (y, v)) in data.chunks_exact_mut(w * bytes).zip(lines) {
+                let first = (y * width + x) * v.stride + v.offset;
+                let row = v.values[first..].iter().step_by(v.stride);
+                let samples = line.chunks_exact_mut(bytes).zip(row);
+                match precision {
+                    ExrPrecision::Float => {
+                        samples.for_each(|(o, v)| o.copy_from_slice(&v.to_ne_bytes()))
                     }
+                    ExrPrecision::Half => samples
+                        .for_each(|(o, v)| o.copy_from_slice(&f16::from_f32(*v).to_ne_bytes())),
                 }
             }
             data

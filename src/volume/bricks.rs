@@ -250,6 +250,15 @@ mod tests {
     use crate::volume::sparse::LEAF_VOXELS;
     use crate::volume::Transform;
 
+    /// The brick sample at `p` is bit for bit the reference sampler's.
+    fn assert_same(sampler: &mut BrickSampler, g: &SparseGrid, p: Vec3) {
+        assert_eq!(
+            sampler.sample(p).to_bits(),
+            g.sample_index(p).to_bits(),
+            "{p}"
+        );
+    }
+
     #[test]
     fn bit_identical_to_sample_index() {
         // Leaves next to each other, to an 8³ tile, to a 128³ tile and to empty space; a leaf with
@@ -280,11 +289,7 @@ mod tests {
             let a = n as f32 * 0.013;
             p += Vec3::new(a.sin(), (1.7 * a).cos(), (0.6 * a).sin()) * 0.37;
             p = p.clamp(Vec3::splat(-20.0), Vec3::splat(30.0));
-            assert_eq!(
-                sampler.sample(p).to_bits(),
-                g.sample_index(p).to_bits(),
-                "{p}"
-            );
+            assert_same(&mut sampler, &g, p);
         }
     }
 
@@ -309,11 +314,7 @@ mod tests {
             Vec3::new(-0.5, 3.0, 3.0),
             Vec3::new(131.2, 3.5, 3.5),
         ] {
-            assert_eq!(
-                sampler.sample(p).to_bits(),
-                g.sample_index(p).to_bits(),
-                "{p}"
-            );
+            assert_same(&mut sampler, &g, p);
         }
     }
 
