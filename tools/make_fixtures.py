@@ -86,7 +86,8 @@ def gen(out):
 
 
 # ---------------------------------------------------------------------------
-# Byte-level inspection (VDB-FORMAT.md §3-§7): compression flags and map type per grid
+# Byte-level inspection (docs/vdb-format.md: header, descriptors, grid body, transforms):
+# compression flags and map type per grid
 # ---------------------------------------------------------------------------
 
 class Cur:

@@ -16,7 +16,8 @@ import numpy as np
 out = sys.argv[1]
 
 def directions(w, h, ss=4):
-    """Unit directions of ss×ss sub-samples per pixel, shape (h, w, ss*ss, 3), DESIGN.md mapping:
+    """Unit directions of ss×ss sub-samples per pixel, shape (h, w, ss*ss, 3), the latlong
+    mapping of docs/model.md:
     theta = pi*v from +Y, phi = 2*pi*u, omega = (sin t sin p, cos t, -sin t cos p)."""
     o = (np.arange(ss) + 0.5) / ss
     u = (np.arange(w)[:, None] + o[None, :]) / w          # (w, ss)

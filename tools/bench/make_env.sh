@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Writes a W×H latlong HDRI (uncompressed float OpenEXR, RGB) for the projection/relight benchmarks:
 # a blue-grey sky gradient, dark ground and three soft coloured lobes, closed form at pixel centres
-# (DESIGN.md mapping). Deterministic; needs numpy (/usr/bin/python3, python3-numpy).
+# (the latlong mapping of docs/model.md). Deterministic; needs numpy (/usr/bin/python3, python3-numpy).
 # Usage: tools/bench/make_env.sh OUT.exr [WIDTH [HEIGHT]]     (default 2048×1024)
 set -euo pipefail
 OUT="$1"; W="${2:-2048}"; H="${3:-$(( W / 2 ))}"
