@@ -3,8 +3,8 @@
 
 use std::time::Instant;
 
-use vscatter::env::Environment;
-use vscatter::sh;
+use vscatter::light::env::Environment;
+use vscatter::light::sh;
 
 /// 4k latlong: the common size of production HDRIs (DESIGN target: well under a second at 10 bands).
 const WIDTH: usize = 4096;

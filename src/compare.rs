@@ -1,6 +1,5 @@
-//! `vscatter compare IMAGE.exr REFERENCE.exr`: how far a render is from a reference — the measure
-//! of the accuracy report (issue 6) and of anyone checking their settings against the path
-//! tracer. Relative RMSE √mean((a−b)²) / mean(b) over the volume's pixels and all three channels.
+//! How far a render is from a reference — the measure of the accuracy report and of anyone
+//! checking their settings against the path tracer. Relative RMSE √mean((a−b)²) / mean(b) over the volume's pixels and all three channels.
 //!
 //! **Volume pixels** are those where either image's alpha exceeds [`VOLUME_ALPHA`]: render both
 //! with `--no-background`, so RGB is the volume's own light and alpha its coverage.
@@ -12,9 +11,8 @@
 
 use std::path::Path;
 
-use crate::cli::CompareArgs;
 use crate::error::{Error, Result};
-use crate::image::{read_exr_rgba, ImageBuf, WriteOptions};
+use crate::io::image::{read_exr_rgba, ImageBuf};
 
 /// Pixels where the volume covers at least this fraction count as the volume's: below it the
 /// pixel is mostly background, and relative errors of near-zero light say nothing.
@@ -39,9 +37,10 @@ pub struct Comparison {
     pub relative_bias: f64,
 }
 
-type Rgba = Vec<[f32; 4]>;
+pub type Rgba = Vec<[f32; 4]>;
 
-fn read(path: &Path) -> Result<(usize, usize, Rgba)> {
+/// An EXR's RGBA pixels, refusing sizes no render could have.
+pub fn read(path: &Path) -> Result<(usize, usize, Rgba)> {
     read_exr_rgba(path, |w, h| {
         if w.saturating_mul(h) > crate::render::camera::MAX_PIXELS as usize {
             Err(Error::format(
@@ -97,7 +96,7 @@ pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Optio
 
 /// A false-colour image of (a − b)/mean(b): red where a is brighter, blue where darker, black
 /// where they agree, grey outside the volume.
-fn diff_image(w: usize, h: usize, a: &Rgba, b: &Rgba, mean_b: f64) -> ImageBuf {
+pub fn diff_image(w: usize, h: usize, a: &Rgba, b: &Rgba, mean_b: f64) -> ImageBuf {
     let mut image = ImageBuf::new(w, h);
     for (out, (pa, pb)) in image.rgba.iter_mut().zip(a.iter().zip(b)) {
         if pa[3].max(pb[3]) <= VOLUME_ALPHA {
@@ -109,61 +108,6 @@ fn diff_image(w: usize, h: usize, a: &Rgba, b: &Rgba, mean_b: f64) -> ImageBuf {
         *out = [v.max(0.0), 0.0, (-v).max(0.0), 1.0];
     }
     image
-}
-
-pub fn run(args: &CompareArgs) -> Result<()> {
-    if let Some(diff) = &args.diff {
-        if diff.extension().and_then(|e| e.to_str()) != Some("png") {
-            return Err(Error::usage(format!(
-                "--diff {}: must end in .png",
-                diff.display()
-            )));
-        }
-    }
-    let (w, h, a) = read(&args.image)?;
-    let mut refs = Vec::new();
-    for path in std::iter::once(&args.reference).chain(&args.reference2) {
-        let (rw, rh, px) = read(path)?;
-        if (rw, rh) != (w, h) {
-            return Err(Error::format(
-                path,
-                format!("is {rw}x{rh}, but {} is {w}x{h}", args.image.display()),
-            ));
-        }
-        refs.push(px);
-    }
-    let Some(c) = compare(&a, &refs[0], refs.get(1).map(Vec::as_slice)) else {
-        return Err(Error::Runtime(format!(
-            "{}: no volume pixels to compare (render both with --no-background; \
-             a pixel counts where alpha > {VOLUME_ALPHA})",
-            args.reference.display()
-        )));
-    };
-    if let Some(path) = &args.diff {
-        // Against the mean of the references: half the noise variance of either.
-        let reference: Rgba = match refs.get(1) {
-            Some(r2) => refs[0]
-                .iter()
-                .zip(r2)
-                .map(|(p, q)| std::array::from_fn(|c| 0.5 * (p[c] + q[c])))
-                .collect(),
-            None => refs[0].clone(),
-        };
-        diff_image(w, h, &a, &reference, c.reference_mean).write(path, &WriteOptions::default())?;
-    }
-    if args.json {
-        println!("{}", serde_json::to_string(&c).unwrap_or_default());
-    } else {
-        println!(
-            "relative RMSE {:.2} % over {} volume pixels (raw {:.2} %, reference noise {:.2} %, bias {:+.2} %)",
-            100.0 * c.relative_rmse,
-            c.pixels,
-            100.0 * c.relative_rmse_raw,
-            100.0 * c.reference_noise,
-            100.0 * c.relative_bias
-        );
-    }
-    Ok(())
 }
 
 #[cfg(test)]

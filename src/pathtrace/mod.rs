@@ -1,5 +1,5 @@
-//! Ground truth: an unbiased Monte Carlo volumetric path tracer of exactly DESIGN.md's model
-//! (σt = sigma_t·ρ, σs = albedo·σt, isotropic phase, the environment at infinity), against which
+//! Ground truth: an unbiased Monte Carlo volumetric path tracer of exactly the model of
+//! [docs/model.md](../../docs/model.md) (σt = sigma_t·ρ, σs = albedo·σt, isotropic phase, the environment at infinity), against which
 //! the transfer method's error is measured rather than guessed.
 //!
 //! **Estimator.** From the camera, delta tracking finds the first real collision; escaping rays
@@ -17,7 +17,6 @@
 //! grows past it (high albedo makes fireflies otherwise). Every path's random numbers come from a
 //! PCG seeded by (`--seed`, pixel, sample index): the image is the same on any thread count.
 
-pub mod envlight;
 pub mod tracking;
 
 use std::f64::consts::PI;
@@ -25,7 +24,7 @@ use std::f64::consts::PI;
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 
-pub use envlight::EnvLight;
+pub use crate::light::envlight::EnvLight;
 pub use tracking::{Medium3d, TrackStats};
 
 use crate::render::film::{CameraSample, RayResult};
@@ -99,7 +98,7 @@ impl PathTracer<'_> {
     /// One camera path's estimate of the volume's radiance and transmittance.
     pub fn trace(&self, sample: CameraSample, stats: &mut PathStats) -> RayResult {
         let mut rng = self.rng(&sample);
-        let mut sampler = BrickSampler::new(self.medium.bricks, self.medium.density);
+        let mut sampler = self.medium.field.sampler();
         let mut track = TrackStats::default();
         stats.paths += 1;
         let mut out = RayResult::CLEAR;
@@ -187,12 +186,13 @@ impl PathTracer<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::env::Environment;
+    use crate::light::env::Environment;
+    use crate::light::sh::Window;
+    use crate::light::Lighting;
     use crate::render::camera::Camera;
     use crate::render::film::{render_frame, Background};
-    use crate::volume::bricks::Bricks;
-    use crate::volume::dda::Occupancy;
-    use crate::volume::sparse::{add_hashed_leaves, SparseGrid, TileLevel, Transform};
+    use crate::volume::grid::{add_hashed_leaves, SparseGrid, TileLevel, Transform};
+    use crate::volume::DensityField;
     use glam::IVec3;
 
     /// A thin 128³ node tile beside 40 leaves of random density up to 3: varied density, empty
@@ -224,14 +224,17 @@ mod tests {
         spp: u32,
         background: bool,
     ) -> crate::render::Frame {
-        let occupancy = Occupancy::build(grid);
-        let bricks = Bricks::build(grid);
-        let light = EnvLight::new(env, 0.0, 1.0);
+        let field = DensityField::new(grid.clone());
+        let lighting = Lighting {
+            env: env.clone(),
+            rotation: 0.0,
+            scale: 1.0,
+            window: Window::None,
+        };
+        let light = lighting.sampler();
         let tracer = PathTracer {
             medium: Medium3d {
-                density: grid,
-                bricks: &bricks,
-                occupancy: &occupancy,
+                field: &field,
                 sigma_t,
             },
             albedo,
@@ -274,22 +277,24 @@ mod tests {
 
     #[test]
     fn pure_absorber_gives_the_analytic_transmittance() {
-        // Albedo 0 ⇒ L = Tr·E (DESIGN fact 2). A 128³ tile of density 1 seen along −Z through
+        // Albedo 0 ⇒ L = Tr·E (docs/model.md). A 128³ tile of density 1 seen along −Z through
         // its middle: the trilinear density ramps from 0 to 1 over the outer voxel on each side,
         // so ∫ρ = the chord of [−0.5, 127.5], 128 voxels. The tracer's 0/1 transmittance averages
         // to e^{−σt·128}.
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         g.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
-        let occupancy = Occupancy::build(&g);
-        let bricks = Bricks::build(&g);
-        let env = constant_env(1.0);
-        let light = EnvLight::new(&env, 0.0, 1.0);
+        let field = DensityField::new(g);
+        let lighting = Lighting {
+            env: constant_env(1.0),
+            rotation: 0.0,
+            scale: 1.0,
+            window: Window::None,
+        };
+        let light = lighting.sampler();
         let sigma_t = 0.01f32;
         let tracer = PathTracer {
             medium: Medium3d {
-                density: &g,
-                bricks: &bricks,
-                occupancy: &occupancy,
+                field: &field,
                 sigma_t,
             },
             albedo: 0.0,

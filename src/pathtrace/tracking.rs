@@ -11,12 +11,11 @@
 
 use std::ops::ControlFlow;
 
-use glam::{DVec3, Vec3};
+use glam::Vec3;
 use rand::Rng;
 
-use crate::volume::bricks::{BrickSampler, Bricks};
-use crate::volume::dda::Occupancy;
-use crate::volume::SparseGrid;
+use crate::volume::bricks::BrickSampler;
+use crate::volume::DensityField;
 
 /// Ratio tracking plays Russian roulette once its estimate falls below this: the shadow ray stops
 /// with probability ½ or continues with twice the weight (so at most 2·this), unbiased, and a long
@@ -25,10 +24,7 @@ const SHADOW_ROULETTE_BELOW: f64 = 0.1;
 
 /// The density a tracker walks through, and the medium's extinction per unit density.
 pub struct Medium3d<'a> {
-    pub density: &'a SparseGrid,
-    /// The density's apron bricks: a lookup is one hash per block and eight loads.
-    pub bricks: &'a Bricks,
-    pub occupancy: &'a Occupancy,
+    pub field: &'a DensityField,
     pub sigma_t: f32,
 }
 
@@ -40,16 +36,6 @@ pub struct TrackStats {
 }
 
 impl<'a> Medium3d<'a> {
-    /// The ray from world point `origin` along unit `dir` in index space: (origin, direction per
-    /// world unit), so span parameters are world distances.
-    fn index_ray(&self, origin: Vec3, dir: Vec3) -> (DVec3, DVec3) {
-        let xf = &self.density.transform;
-        (
-            xf.world_to_index(origin.as_dvec3()),
-            dir.as_dvec3() / xf.scale,
-        )
-    }
-
     /// Walks tentative collisions along the ray; `at` gets each one's world distance and the ratio
     /// ρ/ρ̄ there, and stops the walk by returning `Break`.
     fn walk<R: Rng>(
@@ -64,9 +50,10 @@ impl<'a> Medium3d<'a> {
         if self.sigma_t <= 0.0 {
             return;
         }
-        let (o, d) = self.index_ray(origin, dir);
-        self.occupancy
-            .visit_majorants(o, d, 0.0, f64::INFINITY, |span| {
+        let ray = self.field.grid.transform.ray_to_index(origin, dir);
+        self.field
+            .occupancy
+            .visit_majorants(&ray, 0.0, f64::INFINITY, |span| {
                 if span.max_density <= 0.0 {
                     return ControlFlow::Continue(());
                 }
@@ -80,7 +67,7 @@ impl<'a> Medium3d<'a> {
                         return ControlFlow::Continue(());
                     }
                     stats.lookups += 1;
-                    let rho = sampler.sample((o + d * t).as_vec3()) as f64;
+                    let rho = sampler.sample(ray.at(t).as_vec3()) as f64;
                     at(t, (rho / bound).clamp(0.0, 1.0), rng)?;
                 }
             });
@@ -135,7 +122,8 @@ impl<'a> Medium3d<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::sparse::{TileLevel, Transform};
+    use crate::volume::grid::{SparseGrid, TileLevel, Transform};
+    use glam::DVec3;
     use glam::IVec3;
     use rand::SeedableRng;
 
@@ -159,19 +147,16 @@ mod tests {
         // density 1 up to voxel 127, then linear to 0 at 128 (trilinear), so the optical depth
         // to infinity is σt·0.5·(127 − 27.5 + 0.5) world units.
         let g = slab(1.0);
-        let occupancy = Occupancy::build(&g);
-        let bricks = Bricks::build(&g);
+        let field = DensityField::new(g);
         let sigma_t = 0.04f32;
         let medium = Medium3d {
-            density: &g,
-            bricks: &bricks,
-            occupancy: &occupancy,
+            field: &field,
             sigma_t,
         };
         let origin = Vec3::new(13.75, 32.0, 32.0);
         let want = (-(sigma_t as f64) * 0.5 * 100.0).exp();
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(3);
-        let mut sampler = BrickSampler::new(&bricks, &g);
+        let mut sampler = field.sampler();
         let mut stats = TrackStats::default();
         let n = 40_000;
         let (mut escaped, mut ratio) = (0usize, 0.0f64);
@@ -196,16 +181,13 @@ mod tests {
         // Mean free path 1/σt inside a uniform medium: the mean of collision distances short of
         // the far side, for a medium much thicker than a free path, is ≈ 1/σt.
         let g = slab(2.0);
-        let occupancy = Occupancy::build(&g);
-        let bricks = Bricks::build(&g);
+        let field = DensityField::new(g.clone());
         let medium = Medium3d {
-            density: &g,
-            bricks: &bricks,
-            occupancy: &occupancy,
+            field: &field,
             sigma_t: 1.0,
         };
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(9);
-        let mut sampler = BrickSampler::new(&bricks, &g);
+        let mut sampler = field.sampler();
         let mut stats = TrackStats::default();
         let origin = Vec3::new(2.0, 32.0, 32.0);
         let n = 20_000;
@@ -222,21 +204,13 @@ mod tests {
 
     #[test]
     fn empty_space_and_zero_extinction_are_free() {
-        let g = SparseGrid::new(Transform::default(), 0.0);
-        let occupancy = Occupancy::build(&g);
-        let dense = slab(1.0);
-        let dense_occ = Occupancy::build(&dense);
+        let empty = DensityField::new(SparseGrid::new(Transform::default(), 0.0));
+        let dense = DensityField::new(slab(1.0));
         let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(1);
         let mut stats = TrackStats::default();
-        for (grid, occ, sigma_t) in [(&g, &occupancy, 1.0), (&dense, &dense_occ, 0.0)] {
-            let bricks = Bricks::build(grid);
-            let medium = Medium3d {
-                density: grid,
-                bricks: &bricks,
-                occupancy: occ,
-                sigma_t,
-            };
-            let mut sampler = BrickSampler::new(&bricks, grid);
+        for (field, sigma_t) in [(&empty, 1.0), (&dense, 0.0)] {
+            let medium = Medium3d { field, sigma_t };
+            let mut sampler = field.sampler();
             let o = Vec3::new(-10.0, 30.0, 30.0);
             assert_eq!(
                 medium.collide(o, Vec3::X, &mut rng, &mut sampler, &mut stats),

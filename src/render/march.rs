@@ -1,4 +1,4 @@
-//! The ray march (DESIGN.md "Pixel radiance"): camera rays through the density, front to back,
+//! The ray march ([docs/model.md](../../docs/model.md), "Pixel radiance"): camera rays through the density, front to back,
 //! L = Σ Tr·albedo·(1 − e^{−σt Δ})·Ls + Tr·E(ray direction), with empty-space skipping by the
 //! hierarchical DDA, early termination, and image tiles in parallel.
 //!
@@ -23,15 +23,13 @@ use glam::{DVec3, IVec3, Vec3};
 use hashbrown::HashMap;
 use indicatif::ProgressBar;
 
-use crate::floor::floor_split;
+use crate::math::floor::floor_split;
 use crate::render::camera::{hash_unit, Camera, STREAM_STEP};
 use crate::render::film::{self, Background, Frame, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};
-use crate::volume::bricks::{BrickSampler, Bricks};
-use crate::volume::dda::{clip_to_box, Occupancy};
-use crate::volume::sparse::corner;
-use crate::volume::SparseGrid;
+use crate::volume::grid::corner;
+use crate::volume::DensityField;
 
 /// Stop marching when less than this fraction of the background still shows through. The rest of
 /// the ray (its in-scatter and the background it would dim further) is replaced by Tr·E: exact in
@@ -156,37 +154,32 @@ impl InScatter for TransferRadiance {
 
 /// Everything a ray meets.
 pub struct Scene<'a, S: InScatter> {
-    pub density: &'a SparseGrid,
-    pub occupancy: &'a Occupancy,
+    pub field: &'a DensityField,
     pub medium: Medium,
     pub source: &'a S,
     /// `None` renders the volume alone (`--no-background`): RGB premultiplied, alpha = 1 − Tr.
     pub background: Option<Background<'a>>,
-    /// The density as apron bricks, for the march's samples.
-    pub bricks: Bricks,
     /// The trilinear support of the density in index space, `None` when nothing is active.
     support: Option<(DVec3, DVec3)>,
 }
 
 impl<'a, S: InScatter> Scene<'a, S> {
     pub fn new(
-        density: &'a SparseGrid,
-        occupancy: &'a Occupancy,
+        field: &'a DensityField,
         medium: Medium,
         source: &'a S,
         background: Option<Background<'a>>,
     ) -> Self {
         // Trilinear density reaches one voxel beyond the outermost active voxel, and no further.
-        let support = density
+        let support = field
+            .grid
             .active_bbox()
             .map(|(lo, hi)| (lo.as_dvec3() - 1.0, hi.as_dvec3() + 1.0));
         Scene {
-            density,
-            occupancy,
+            field,
             medium,
             source,
             background,
-            bricks: Bricks::build(density),
             support,
         }
     }
@@ -245,10 +238,10 @@ pub fn march_ray<S: InScatter>(
     let Some((lo, hi)) = scene.support else {
         return out;
     };
-    let xf = &scene.density.transform;
-    let o = xf.world_to_index(origin.as_dvec3());
-    let d = dir.as_dvec3() / xf.scale;
-    let Some((t_entry, t_exit)) = clip_to_box(o, d, 0.0, f64::INFINITY, lo, hi) else {
+    let xf = &scene.field.grid.transform;
+    let ray = xf.ray_to_index(origin, dir);
+    let (o, d) = (ray.origin, ray.dir);
+    let Some((t_entry, t_exit)) = ray.clip(0.0, f64::INFINITY, lo, hi) else {
         return out;
     };
     let step = settings.step_voxels as f64 * xf.voxel_size().min_element();
@@ -269,7 +262,7 @@ pub fn march_ray<S: InScatter>(
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
-    let mut sampler = BrickSampler::new(&scene.bricks, scene.density);
+    let mut sampler = scene.field.sampler();
     let mut in_scatter = S::Sum::default();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
@@ -311,8 +304,9 @@ pub fn march_ray<S: InScatter>(
     };
     if settings.skip_empty {
         scene
+            .field
             .occupancy
-            .visit_spans(o, d, t_entry, t_exit, |s| run(s.t0, s.t1));
+            .visit_spans(&ray, t_entry, t_exit, |s| run(s.t0, s.t1));
     } else {
         let _ = run(t_entry, t_exit);
     }
@@ -360,8 +354,9 @@ pub fn render_with_progress<S: InScatter>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::sparse::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
-    use crate::volume::Transform;
+    use crate::math::ray::Ray;
+    use crate::volume::grid::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
+    use crate::volume::{SparseGrid, Transform};
     use glam::IVec3;
 
     /// A test source given by its value at a point, summed step by step.
@@ -451,10 +446,10 @@ mod tests {
         zeros.insert_leaf(IVec3::new(128, 0, 0), mask, [0.0; LEAF_VOXELS]);
         let empty = SparseGrid::new(anisotropic(), 0.0);
         for g in [&zeros, &empty] {
-            let occ = Occupancy::build(g);
+            let field = DensityField::new(g.clone());
             let source = uniform([[5.0; 3]; 2]);
             for bg in backgrounds {
-                let scene = Scene::new(g, &occ, medium(3.0, 0.9), &source, Some(bg));
+                let scene = Scene::new(&field, medium(3.0, 0.9), &source, Some(bg));
                 for skip_empty in [true, false] {
                     let settings = MarchSettings {
                         skip_empty,
@@ -487,8 +482,9 @@ mod tests {
     /// per piece is exact. Also says whether the ray is "face only": wherever ρ > 0, at most one
     /// axis is on its ramp.
     fn exact_integral(g: &SparseGrid, origin: Vec3, dir: Vec3) -> (f64, bool) {
-        let o = g.transform.world_to_index(origin.as_dvec3());
-        let d = dir.as_dvec3() / g.transform.scale;
+        let Ray {
+            origin: o, dir: d, ..
+        } = g.transform.ray_to_index(origin, dir);
         let mut ts = vec![0.0];
         for a in 0..3 {
             for c in [-1.0, 0.0, 127.0, 128.0] {
@@ -527,12 +523,12 @@ mod tests {
         // through edges and corners multiply two or three ramps; for them the reference is the
         // exact piecewise-cubic integral instead.
         let g = unit_tile(anisotropic(), 1.0);
-        let occ = Occupancy::build(&g);
+        let field = DensityField::new(g.clone());
         let sigma_t = 1.5f32; // longest chord ≈ 2.2 world units: optical depth ≤ 3.4 < 5
         let source = uniform([[7.0; 3]; 2]);
         let e = [1.0f32, 0.5, 2.0];
         let bg = |_: Vec3| e;
-        let scene = Scene::new(&g, &occ, medium(sigma_t, 0.0), &source, Some(&bg));
+        let scene = Scene::new(&field, medium(sigma_t, 0.0), &source, Some(&bg));
         let settings = MarchSettings {
             step_voxels: 0.25,
             ..MarchSettings::default()
@@ -549,15 +545,9 @@ mod tests {
                 let (integral, face_only) = exact_integral(&g, origin, dir);
                 if face_only {
                     // The analytic chord of the world box [−0.5, 127.5]³.
-                    let chord = clip_to_box(
-                        origin.as_dvec3(),
-                        dir.as_dvec3(),
-                        0.0,
-                        f64::INFINITY,
-                        blo,
-                        bhi,
-                    )
-                    .map_or(0.0, |(a, b)| b - a);
+                    let chord = Ray::new(origin.as_dvec3(), dir.as_dvec3())
+                        .clip(0.0, f64::INFINITY, blo, bhi)
+                        .map_or(0.0, |(a, b)| b - a);
                     assert!((chord - integral).abs() < 1e-9, "{chord} vs {integral}");
                     face_rays += 1;
                 }
@@ -582,12 +572,12 @@ mod tests {
         // Albedo 1 with Ls = E = c everywhere: Σ Tr_k (1 − e^{−τ_k}) c + Tr c telescopes to c,
         // early termination included (what is cut off is added back as Tr·E).
         let g = unit_tile(anisotropic(), 1.0);
-        let occ = Occupancy::build(&g);
+        let field = DensityField::new(g.clone());
         let c = [0.8f32, 1.0, 1.7];
         let source = uniform([[c[0], c[1], 0.0], [0.0, 0.0, c[2]]]);
         let bg = |_: Vec3| c;
         for sigma_t in [0.5f32, 4.0, 200.0] {
-            let scene = Scene::new(&g, &occ, medium(sigma_t, 1.0), &source, Some(&bg));
+            let scene = Scene::new(&field, medium(sigma_t, 1.0), &source, Some(&bg));
             for cam in cameras(&g, 16, 12) {
                 let (frame, _) = render(&scene, &cam, &MarchSettings::default());
                 for px in &frame.rgba {
@@ -611,11 +601,11 @@ mod tests {
     #[test]
     fn skipping_changes_nothing() {
         let g = lumpy();
-        let occ = Occupancy::build(&g);
+        let field = DensityField::new(g.clone());
         let directional = |d: Vec3| [d.x.abs(), 0.5 + d.y, 1.0 - d.z];
         for (sigma_t, bg) in [(3.0f32, Some(&directional as Background)), (40.0, None)] {
             let source = smooth();
-            let scene = Scene::new(&g, &occ, medium(sigma_t, 0.8), &source, bg);
+            let scene = Scene::new(&field, medium(sigma_t, 0.8), &source, bg);
             let (lo, hi) = world_box(&g, 0.0, 256.0);
             let cams = [
                 Camera::framing(lo, hi, 40, 30, 45.0).unwrap(),
@@ -644,9 +634,9 @@ mod tests {
     #[test]
     fn no_background_is_premultiplied_with_alpha() {
         let g = unit_tile(Transform::default(), 1.0);
-        let occ = Occupancy::build(&g);
+        let field = DensityField::new(g.clone());
         let source = uniform([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
-        let scene = Scene::new(&g, &occ, medium(0.01, 0.5), &source, None);
+        let scene = Scene::new(&field, medium(0.01, 0.5), &source, None);
         let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 20, 45.0).unwrap();
         let (frame, stats) = render(&scene, &cam, &MarchSettings::default());
         assert_eq!(stats.rays, 400);
@@ -674,9 +664,9 @@ mod tests {
     #[test]
     fn a_degenerate_step_ends_instead_of_hanging() {
         let g = unit_tile(Transform::default(), 1.0);
-        let occ = Occupancy::build(&g);
+        let field = DensityField::new(g.clone());
         let source = uniform([[1.0; 3]; 2]);
-        let scene = Scene::new(&g, &occ, medium(1.0, 0.5), &source, None);
+        let scene = Scene::new(&field, medium(1.0, 0.5), &source, None);
         let mut stats = MarchStats::default();
         for step_voxels in [0.0, f32::NAN, -1.0] {
             let settings = MarchSettings {
@@ -770,7 +760,7 @@ mod tests {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/cloud.vdb");
         let vdb = crate::volume::vdb::VdbFile::open(std::path::Path::new(path)).unwrap();
         let g = vdb.read_grid(vdb.choose_grid(None).unwrap()).unwrap();
-        let occ = Occupancy::build(&g);
+        let field = DensityField::new(g.clone());
         let (lo, hi) = g.active_bbox().unwrap();
         let (wlo, whi) = (
             g.transform.index_to_world(lo.as_dvec3()).as_vec3(),
@@ -781,7 +771,7 @@ mod tests {
         // An optical depth of about 8 across the cloud's 96-voxel width at density 1.
         let sigma_t = 8.0 / (96.0 * g.transform.voxel_size().x as f32);
         let source = smooth();
-        let scene = Scene::new(&g, &occ, medium(sigma_t, 0.9), &source, Some(&sky));
+        let scene = Scene::new(&field, medium(sigma_t, 0.9), &source, Some(&sky));
         let (a, sa) = render(&scene, &cam, &MarchSettings::default());
         let plain = MarchSettings {
             skip_empty: false,

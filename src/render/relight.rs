@@ -90,7 +90,7 @@ pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
 mod tests {
     use super::*;
     use crate::transfer::{Medium, TransferLayout};
-    use crate::volume::sparse::TileLevel;
+    use crate::volume::grid::TileLevel;
     use crate::volume::{SparseGrid, Transform};
     use glam::IVec3;
 

@@ -25,7 +25,7 @@ use xxhash_rust::xxh3::Xxh3;
 
 use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout};
 use crate::error::{Error, Result};
-use crate::volume::sparse::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+use crate::volume::grid::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 
 const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// Bumped whenever the layout or the meaning of the data changes; older caches are refused with a
@@ -45,6 +45,26 @@ pub struct Source {
     pub size: u64,
     /// Seconds since the Unix epoch, 0 when unknown.
     pub mtime: u64,
+}
+
+impl Source {
+    /// Name, size and modification time of a bake's source file, and the grid baked.
+    pub fn of(path: &Path, grid: &str) -> Result<Source> {
+        let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+        let mtime = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_secs());
+        Ok(Source {
+            name: path
+                .file_name()
+                .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+            grid: grid.to_string(),
+            size: meta.len(),
+            mtime,
+        })
+    }
 }
 
 /// The JSON header: what `info` shows, and the counts the reader checks sizes against.
@@ -194,7 +214,7 @@ pub fn write(
 ) -> Result<()> {
     let json = serde_json::to_vec(header).map_err(|e| Error::Runtime(e.to_string()))?;
     let half = header.coefficients == "f16";
-    crate::atomic::write_atomic(path, |file| {
+    crate::io::atomic::write_atomic(path, |file| {
         let mut w = Hashing {
             inner: file,
             hash: Xxh3::new(),
@@ -299,18 +319,11 @@ pub fn format_version(path: &Path) -> Result<Option<u32>> {
     Ok(Some(u32::from_le_bytes([v[0], v[1], v[2], v[3]])))
 }
 
-/// Reads only a cache's header, checked against the file's size (for `info`).
-pub fn read_header(path: &Path) -> Result<Header> {
-    use std::io::Read;
-    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
-    let mut prefix = Vec::new();
-    file.take(FIXED as u64 + MAX_HEADER)
-        .read_to_end(&mut prefix)
-        .map_err(|e| Error::io(path, e))?;
-    parse_header(&prefix, len)
-        .map(|(h, _)| h)
-        .map_err(|m| Error::format(path, m))
+/// What to do about a cache that cannot be used, said with what is wrong with it.
+const ADVICE: &str = "delete it or bake it again";
+
+fn damaged(path: &Path, what: String) -> Error {
+    Error::format(path, format!("{what} ({ADVICE})"))
 }
 
 /// Bytes before the JSON header: magic, version, header length.
@@ -325,7 +338,7 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
     let version = u32::from_le_bytes([data[12], data[13], data[14], data[15]]);
     if version != VERSION {
         return Err(format!(
-            "cache format version {version}, this vscatter reads version {VERSION}: bake it again"
+            "cache format version {version}, this vscatter reads version {VERSION}"
         ));
     }
     let mut len = [0u8; 8];
@@ -349,7 +362,7 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
             want.map_or("too many".into(), |n| n.to_string()),
         ));
     }
-    if !(1..=crate::sh::MAX_BANDS).contains(&header.bands) || header.scale < 1 {
+    if !(1..=crate::light::sh::MAX_BANDS).contains(&header.bands) || header.scale < 1 {
         return Err("the header's bake settings are invalid".into());
     }
     Ok((header, end))
@@ -358,17 +371,37 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
 /// Reads and verifies a whole cache.
 pub fn read(path: &Path) -> Result<Cache> {
     let data = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    read_bytes(&data).map_err(|m| Error::format(path, m))
+    read_bytes(&data).map_err(|m| damaged(path, m))
 }
 
-fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
-    let (header, start) = parse_header(data, data.len() as u64)?;
+/// Reads a cache's header and verifies the checksum over the whole file, without decoding the
+/// data (for `info`: a damaged cache is reported as damaged, not described).
+pub fn verify(path: &Path) -> Result<Header> {
+    let data = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let check = || {
+        let (header, _) = parse_header(&data, data.len() as u64)?;
+        verify_checksum(&data)?;
+        Ok(header)
+    };
+    check().map_err(|m| damaged(path, m))
+}
+
+/// The xxh3 of everything before the last 8 bytes against those bytes (the caller has checked
+/// the length against the header).
+fn verify_checksum(data: &[u8]) -> std::result::Result<(), String> {
     let split = data.len() - 8;
     let mut sum = [0u8; 8];
     sum.copy_from_slice(&data[split..]);
     if xxhash_rust::xxh3::xxh3_64(&data[..split]) != u64::from_le_bytes(sum) {
         return Err("checksum mismatch: the cache is corrupted".into());
     }
+    Ok(())
+}
+
+fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
+    let (header, start) = parse_header(data, data.len() as u64)?;
+    verify_checksum(data)?;
+    let split = data.len() - 8;
     let settings = header
         .settings()
         .ok_or("the header names an unknown lattice")?;

@@ -24,7 +24,7 @@ use glam::{IVec3, Vec3};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use super::grid::TransferLayout;
+use super::layout::TransferLayout;
 use crate::volume::SparseGrid;
 
 /// Conjugate-gradient iterations. The mass matrix of trilinear hats is well conditioned (its
@@ -150,7 +150,7 @@ fn row(density: &SparseGrid, layout: &TransferLayout, v: IVec3) -> Row {
         let base = p.floor();
         let f = p - base;
         for n in 0..8 {
-            let corner = crate::volume::sparse::corner(n);
+            let corner = crate::volume::grid::corner(n);
             let w = |bit: i32, t: f64| if bit == 1 { t } else { 1.0 - t };
             let wm = w(corner.x, f.x) * w(corner.y, f.y) * w(corner.z, f.z);
             let d = base.as_ivec3() + corner - v;
@@ -285,7 +285,7 @@ mod tests {
             morton3(IVec3::new(5, 0, 0))
         );
     }
-    use crate::volume::sparse::TileLevel;
+    use crate::volume::grid::TileLevel;
 
     #[test]
     fn a_field_the_interpolant_can_hold_is_fitted_exactly() {

@@ -75,10 +75,10 @@
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 
-use super::grid::TransferLayout;
+use super::layout::TransferLayout;
 use super::{single, Medium};
-use crate::volume::sampler::BlockSampler;
-use crate::volume::SparseGrid;
+use crate::volume::bricks::BrickSampler;
+use crate::volume::DensityField;
 
 /// Stop when the estimated energy still to come is below this fraction of the total (issue 4).
 pub const CONVERGENCE: f64 = 1e-4;
@@ -211,7 +211,7 @@ pub struct LatticeStats {
 }
 
 fn build_links(
-    density: &SparseGrid,
+    field: &DensityField,
     layout: &TransferLayout,
     medium: Medium,
     dirs: Directions,
@@ -220,7 +220,7 @@ fn build_links(
     let n = layout.len();
     let d = dirs.len();
     let k = layout.k;
-    let scale = density.transform.scale.as_vec3();
+    let scale = field.grid.transform.scale.as_vec3();
     let (lo, hi) = layout
         .voxels()
         .iter()
@@ -251,7 +251,7 @@ fn build_links(
         .zip(layout.voxels().par_iter())
         .for_each(
             |(((((target, trans), read_in), emit_out), read_emit), &v)| {
-                let mut acc = BlockSampler::new(density);
+                let mut acc = field.sampler();
                 let x = layout.position(v);
                 let mut segments = Vec::with_capacity(d);
                 for (j, off) in dirs.offsets.iter().enumerate() {
@@ -328,7 +328,7 @@ fn inflow(dirs: &Directions, lengths: &[f32], bands: usize) -> Vec<f32> {
         let j = (0..units.len())
             .max_by(|&a, &b| units[a].dot(-w).total_cmp(&units[b].dot(-w)))
             .unwrap_or(0);
-        crate::sh::eval_basis(w.as_dvec3().to_array(), bands, &mut basis);
+        crate::light::sh::eval_basis(w.as_dvec3().to_array(), bands, &mut basis);
         counts[j] += 1;
         for (s, y) in sums[j * coeffs..(j + 1) * coeffs].iter_mut().zip(&basis) {
             *s += y;
@@ -374,7 +374,7 @@ fn leaving(t: f32) -> f32 {
 /// midpoint), the density constant over each sub-step, and integrates exactly over that profile.
 /// Emission is spread along it in proportion to the density, as collisions are; ε and η are the
 /// density-weighted shares of it that escape past the end and that cross the node.
-fn segment(acc: &mut BlockSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> Segment {
+fn segment(acc: &mut BrickSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> Segment {
     let pairs = ((b - a).length() / (2.0 * SEGMENT_STEP_VOXELS)).ceil() as usize;
     let steps = (2 * pairs.max(1)).min(MAX_SEGMENT_STEPS);
     let dl = length / steps as f32;
@@ -529,14 +529,14 @@ pub struct Source<'a> {
 
 /// F_ms for every transfer voxel: `layout.len() × coeffs`.
 pub fn bake_multiple(
-    density: &SparseGrid,
+    field: &DensityField,
     layout: &TransferLayout,
     kind: LatticeKind,
     first: &Source,
 ) -> (Vec<f32>, LatticeStats) {
     let (medium, coeffs) = (first.medium, first.bands * first.bands);
     let dirs = Directions::new(kind);
-    let links = build_links(density, layout, medium, dirs, first.bands);
+    let links = build_links(field, layout, medium, dirs, first.bands);
     let n = layout.len();
     let chunks: Vec<(usize, usize)> = (0..coeffs)
         .step_by(CHUNK)
@@ -603,7 +603,7 @@ mod tests {
     #[test]
     fn half_range_moment_is_near_a_quarter() {
         // Σ_{d·n>0} w·(d·n) is ¼ for the true sphere: how well a flat surface's in- and out-flow
-        // are represented (DESIGN.md). 26 directions: 0.2317; 6 directions: 1/6.
+        // are represented ([docs/model.md](../../docs/model.md)). 26 directions: 0.2317; 6 directions: 1/6.
         let moment = |kind| {
             let dirs = Directions::new(kind);
             dirs.offsets
@@ -644,7 +644,7 @@ mod tests {
         }
         let mut basis = vec![0f64; coeffs];
         let mut value = |row: &[f32], w: Vec3| {
-            crate::sh::eval_basis(w.as_dvec3().to_array(), bands, &mut basis);
+            crate::light::sh::eval_basis(w.as_dvec3().to_array(), bands, &mut basis);
             row.iter()
                 .zip(&basis)
                 .map(|(f, y)| *f as f64 * y)

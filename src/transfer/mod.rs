@@ -4,13 +4,19 @@
 
 pub mod cache;
 pub mod fit;
-pub mod grid;
 pub mod lattice;
+pub mod layout;
+pub mod memory;
 pub mod single;
+#[cfg(test)]
+mod tests;
 
-pub use grid::TransferLayout;
+pub use layout::TransferLayout;
 
-/// The participating medium (DESIGN.md): σt = `sigma_t`·ρ per world unit, σs = `albedo`·σt,
+use crate::volume::transmittance::OpticalDepth;
+use crate::volume::{DensityField, SparseGrid};
+
+/// The participating medium ([docs/model.md](../../docs/model.md)): σt = `sigma_t`·ρ per world unit, σs = `albedo`·σt,
 /// isotropic phase.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Medium {
@@ -73,13 +79,14 @@ pub struct BakeStats {
 
 /// Bakes the transfer of `density`: layout, T_ri, then (unless single-scatter) F_ms.
 pub fn bake(
-    density: &crate::volume::SparseGrid,
+    field: &DensityField,
     medium: Medium,
     settings: &BakeSettings,
     quiet: bool,
 ) -> (Transfer, BakeStats) {
     let mut stats = BakeStats::default();
     let clock = std::time::Instant::now();
+    let density = &field.grid;
     let layout = TransferLayout::build(density, settings.scale);
     stats.layout_seconds = clock.elapsed().as_secs_f64();
     stats.transfer_voxels = layout.len();
@@ -88,8 +95,8 @@ pub fn bake(
     // T_ri twice: at the nodes (the point values the lattice's light is balanced against) and
     // over the density around them (the footprint means the renderer's values are fitted to).
     let clock = std::time::Instant::now();
-    let bar = crate::progress::bar(2 * layout.len() as u64, "single", quiet);
-    let depth = crate::volume::transmittance::OpticalDepth::new(density, medium.sigma_t, true);
+    let bar = crate::io::progress::bar(2 * layout.len() as u64, "single", quiet);
+    let depth = OpticalDepth::new(field, medium.sigma_t, true);
     let single = |origins| {
         let single = single::SingleSettings {
             bands: settings.bands,
@@ -101,7 +108,6 @@ pub fn bake(
     };
     let point = single(single::Origins::Node);
     let mut t_ri = single(single::Origins::Footprint);
-    drop(depth);
     fit::least_squares(density, &layout, &mut t_ri, settings.bands * settings.bands);
     bar.finish_and_clear();
     stats.single_seconds = clock.elapsed().as_secs_f64();
@@ -116,7 +122,7 @@ pub fn bake(
                 medium,
             };
             let (mut f_ms, lattice_stats) =
-                lattice::bake_multiple(density, &layout, settings.lattice, &first);
+                lattice::bake_multiple(field, &layout, settings.lattice, &first);
             stats.lattice = Some(lattice_stats);
             // The unscattered light the fit takes away from a node's point value has collided
             // sooner; the share albedo of it is scattered. So T_ri + F_ms at a node is what it
@@ -138,56 +144,52 @@ pub fn bake(
     (transfer, stats)
 }
 
-/// Resident memory of the process before a bake allocates anything (binary, thread stacks,
-/// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
-const PROCESS_BASELINE: u64 = 24 << 20;
+/// Optical depth per transfer voxel (σt × K × voxel size × mean density) above which the 1/K
+/// resolution visibly costs accuracy: docs/accuracy.md measures single scattering 9–11 % and
+/// multiple scattering 7–9 % off the path tracer at 0.96 (4–5 % at 0.48).
+pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 
-/// Peak memory of a bake, estimated before anything big is allocated.
-#[derive(Debug, Clone, Copy)]
-pub struct MemoryEstimate {
-    pub density: u64,
-    pub layout: u64,
-    /// T_ri and F_ms as kept in memory (f32).
-    pub transfer: u64,
-    /// The larger of the single-scattering and lattice phases' working memory.
-    pub working: u64,
+/// The warning for a transfer whose voxels are too thick to resolve where light enters (see
+/// [`MAX_RESOLVED_CELL_DEPTH`]), naming a `--sigma-t` that clears it and the other flag that helps.
+pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> Option<String> {
+    let stats = density.value_stats()?;
+    let active = density.active_voxels();
+    if active == 0 || stats.sum <= 0.0 {
+        return None;
+    }
+    let mean = stats.sum / active as f64;
+    let voxel = density.transform.voxel_size().min_element();
+    let k = scale as f64;
+    let depth = cell_depth(medium.sigma_t, k, voxel, mean);
+    (depth > MAX_RESOLVED_CELL_DEPTH).then(|| {
+        format!(
+            "{depth:.2} optical depths per transfer voxel (σt {} × K {scale} × voxel {voxel:.3} × mean density {mean:.3}): \
+             light enters within a fraction of a transfer voxel, so expect errors well above 10 % \
+             (docs/accuracy.md); a smaller --scale helps, and --sigma-t {} keeps it below {MAX_RESOLVED_CELL_DEPTH}",
+            medium.sigma_t,
+            clearing_sigma_t(k, voxel, mean),
+        )
+    })
 }
 
-impl MemoryEstimate {
-    /// `bricks_bytes`: the density's sampling bricks, which the single-scattering phase holds
-    /// ([`crate::volume::bricks::Bricks::planned_bytes`]).
-    pub fn new(
-        density_bytes: usize,
-        bricks_bytes: usize,
-        layout_bytes: usize,
-        voxels: usize,
-        settings: &BakeSettings,
-        threads: usize,
-    ) -> MemoryEstimate {
-        let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
-        let one = n * c * 4;
-        let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
-        // Single: the point values kept beside the fitted T_ri, and batch results before they
-        // are scattered into either (two more copies of T_ri); the density's bricks.
-        let single = 2 * one + sets + bricks_bytes as u64;
-        // Lattice: per-chunk results (one more copy); per link a target and four segment values
-        // (20 bytes) and a sweep-order entry (4); four chunk buffers a thread.
-        let d = settings.lattice.directions() as u64;
-        // The point values of T_ri stay alive through the lattice (one more copy).
-        let lattice = if settings.single_scatter {
-            0
-        } else {
-            2 * one + n * d * 24 + threads as u64 * 4 * n * 8 * 4
-        };
-        MemoryEstimate {
-            density: density_bytes as u64,
-            layout: layout_bytes as u64,
-            transfer: 2 * one,
-            working: single.max(lattice) + PROCESS_BASELINE,
-        }
-    }
+/// σt × K × voxel × mean, in the f32 σt the bake uses.
+fn cell_depth(sigma_t: f32, k: f64, voxel: f64, mean: f64) -> f64 {
+    sigma_t as f64 * k * voxel * mean
+}
 
-    pub fn total(&self) -> u64 {
-        self.density + self.layout + self.transfer + self.working
+/// A σt, written with three significant digits, whose cell depth is at most
+/// [`MAX_RESOLVED_CELL_DEPTH`]: rounded down, so the value a user copies clears the warning.
+fn clearing_sigma_t(k: f64, voxel: f64, mean: f64) -> String {
+    let exact = MAX_RESOLVED_CELL_DEPTH / (k * voxel * mean);
+    let decimals = (2 - exact.log10().floor() as i32).max(0);
+    let unit = 10f64.powi(decimals);
+    let mut shown = (exact * unit).floor() / unit;
+    let text = |v: f64| format!("{v:.*}", decimals as usize);
+    // The printed value, parsed as the flag parser will, must not land above the limit.
+    while shown > 0.0
+        && cell_depth(text(shown).parse().unwrap_or(0.0), k, voxel, mean) > MAX_RESOLVED_CELL_DEPTH
+    {
+        shown -= 1.0 / unit;
     }
+    text(shown)
 }

@@ -11,8 +11,8 @@ use glam::{IVec3, Quat, Vec3};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use super::grid::TransferLayout;
-use crate::sh;
+use super::layout::TransferLayout;
+use crate::light::sh;
 use crate::volume::transmittance::OpticalDepth;
 use crate::volume::SparseGrid;
 
@@ -194,6 +194,7 @@ pub fn bake_single(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::volume::DensityField;
 
     #[test]
     fn fibonacci_points_are_unit_and_balanced() {
@@ -210,7 +211,7 @@ mod tests {
         let mut block = SparseGrid::new(Default::default(), 0.0);
         block.insert_tile(crate::volume::TileLevel::Block, IVec3::ZERO, 1.0);
         let layout = TransferLayout::build(&block, 6);
-        let density = SparseGrid::new(Default::default(), 0.0);
+        let empty = DensityField::new(SparseGrid::new(Default::default(), 0.0));
         let settings = SingleSettings {
             bands: 4,
             samples: 512,
@@ -218,9 +219,9 @@ mod tests {
             origins: Origins::Node,
         };
         let t = bake_single(
-            &density,
+            &empty.grid,
             &layout,
-            &OpticalDepth::new(&density, 1.0, true),
+            &OpticalDepth::new(&empty, 1.0, true),
             settings,
             &indicatif::ProgressBar::hidden(),
         );

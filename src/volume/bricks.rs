@@ -19,9 +19,9 @@ use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
 use rayon::prelude::*;
 
-use crate::floor::floor_split;
+use crate::math::floor::floor_split;
+use crate::volume::grid::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 use crate::volume::sampler::BlockSampler;
-use crate::volume::sparse::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// Voxels along a brick edge: a leaf plus the apron it shares with its upper neighbours.
 const BRICK_DIM: usize = LEAF_DIM as usize + 1;
@@ -247,7 +247,7 @@ impl<'a> BrickSampler<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::sparse::LEAF_VOXELS;
+    use crate::volume::grid::LEAF_VOXELS;
     use crate::volume::Transform;
 
     /// The brick sample at `p` is bit for bit the reference sampler's.

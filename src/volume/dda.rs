@@ -28,8 +28,9 @@ use std::ops::ControlFlow;
 use glam::{DVec3, IVec3};
 use hashbrown::HashMap;
 
-use crate::floor::floor;
-use crate::volume::sparse::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
+use crate::math::floor::floor;
+use crate::math::ray::{max, min, Ray};
+use crate::volume::grid::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
 const NODE_LOG2: i32 = 7;
@@ -330,15 +331,8 @@ impl Occupancy {
 
     /// Calls `f` with each span of the ray `origin + t·dir`, t ∈ [t0, t1], in order of t, until `f`
     /// breaks. `dir` need not be unit length; spans are in its parameter.
-    pub fn visit_spans(
-        &self,
-        origin: DVec3,
-        dir: DVec3,
-        t0: f64,
-        t1: f64,
-        f: impl FnMut(Span) -> ControlFlow<()>,
-    ) {
-        self.visit(origin, dir, t0, t1, false, f);
+    pub fn visit_spans(&self, ray: &Ray, t0: f64, t1: f64, f: impl FnMut(Span) -> ControlFlow<()>) {
+        self.visit(ray, t0, t1, false, f);
     }
 
     /// [`Occupancy::visit_spans`], but a span ends wherever the bound changes, so each cell keeps
@@ -346,19 +340,17 @@ impl Occupancy {
     /// densest block's short ones everywhere.
     pub fn visit_majorants(
         &self,
-        origin: DVec3,
-        dir: DVec3,
+        ray: &Ray,
         t0: f64,
         t1: f64,
         f: impl FnMut(Span) -> ControlFlow<()>,
     ) {
-        self.visit(origin, dir, t0, t1, true, f);
+        self.visit(ray, t0, t1, true, f);
     }
 
     fn visit(
         &self,
-        origin: DVec3,
-        dir: DVec3,
+        ray: &Ray,
         t0: f64,
         t1: f64,
         split: bool,
@@ -366,62 +358,51 @@ impl Occupancy {
     ) {
         let Some((lo, hi)) = self.bounds else { return };
         // A non-finite ray could stall the walk (zero cell steps); it crosses nothing measurable.
-        if !(origin.is_finite() && dir.is_finite()) || dir == DVec3::ZERO {
+        if !ray.is_walkable() {
             return;
         }
-        let inv = dir.recip();
-        let Some((t0, t1)) = clip_inv(origin, inv, t0, t1, lo, hi) else {
+        let Some((t0, t1)) = ray.clip(t0, t1, lo, hi) else {
             return;
         };
         let mut pending: Option<Span> = None;
         let whole = (IVec3::MIN, IVec3::MAX);
-        let flow = walk(
-            origin,
-            dir,
-            inv,
-            t0,
-            t1,
-            NODE_LOG2,
-            whole,
-            |node, ta, tb| {
-                match self.node(node) {
-                    Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
-                    Some(NodeCell::Partial(m)) => {
-                        let blocks = &self.partial[m as usize];
-                        let blo = node << BLOCKS_PER_NODE_LOG2;
-                        let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
-                        let b_log2 = LEAF_LOG2 as i32;
-                        walk(origin, dir, inv, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
-                            let part = match blocks.cell(&self.cells, b) {
-                                Some(c) if c.is_full() => Some((tc, td, c.max)),
-                                Some(c) => {
-                                    let (lo, hi) = c.bounds(b);
-                                    clip_inv(origin, inv, tc, td, lo, hi)
-                                        .map(|(a, b)| (a, b, c.max))
-                                }
-                                None => None,
-                            };
-                            match part {
-                                Some((a, b, m)) => {
-                                    // Empty space before or after the occupied part ends the span.
-                                    if a > tc {
-                                        close(&mut pending, &mut f)?;
-                                    }
-                                    extend(&mut pending, a, b, m, split, &mut f)?;
-                                    if b < td {
-                                        close(&mut pending, &mut f)?;
-                                    }
-                                }
-                                None => close(&mut pending, &mut f)?,
+        let flow = walk(ray, t0, t1, NODE_LOG2, whole, |node, ta, tb| {
+            match self.node(node) {
+                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
+                Some(NodeCell::Partial(m)) => {
+                    let blocks = &self.partial[m as usize];
+                    let blo = node << BLOCKS_PER_NODE_LOG2;
+                    let bhi = blo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
+                    let b_log2 = LEAF_LOG2 as i32;
+                    walk(ray, ta, tb, b_log2, (blo, bhi), |b, tc, td| {
+                        let part = match blocks.cell(&self.cells, b) {
+                            Some(c) if c.is_full() => Some((tc, td, c.max)),
+                            Some(c) => {
+                                let (lo, hi) = c.bounds(b);
+                                ray.clip(tc, td, lo, hi).map(|(a, b)| (a, b, c.max))
                             }
-                            ControlFlow::Continue(())
-                        })?;
-                    }
-                    None => close(&mut pending, &mut f)?,
+                            None => None,
+                        };
+                        match part {
+                            Some((a, b, m)) => {
+                                // Empty space before or after the occupied part ends the span.
+                                if a > tc {
+                                    close(&mut pending, &mut f)?;
+                                }
+                                extend(&mut pending, a, b, m, split, &mut f)?;
+                                if b < td {
+                                    close(&mut pending, &mut f)?;
+                                }
+                            }
+                            None => close(&mut pending, &mut f)?,
+                        }
+                        ControlFlow::Continue(())
+                    })?;
                 }
-                ControlFlow::Continue(())
-            },
-        );
+                None => close(&mut pending, &mut f)?,
+            }
+            ControlFlow::Continue(())
+        });
         if flow.is_continue() {
             if let Some(s) = pending {
                 let _ = f(s);
@@ -429,10 +410,11 @@ impl Occupancy {
         }
     }
 
-    /// All spans of a ray, for tests and tools; the march uses [`Occupancy::visit_spans`].
-    pub fn spans(&self, origin: DVec3, dir: DVec3, t0: f64, t1: f64) -> Vec<Span> {
+    /// All spans of a ray, for the exact-span tests.
+    #[cfg(test)]
+    fn spans(&self, origin: DVec3, dir: DVec3, t0: f64, t1: f64) -> Vec<Span> {
         let mut out = Vec::new();
-        self.visit_spans(origin, dir, t0, t1, |s| {
+        self.visit_spans(&Ray::new(origin, dir), t0, t1, |s| {
             out.push(s);
             ControlFlow::Continue(())
         });
@@ -478,83 +460,22 @@ fn extend(
     ControlFlow::Continue(())
 }
 
-/// The part of [t0, t1] where `origin + t·dir` lies in the box [lo, hi] (slab test).
-pub fn clip_to_box(
-    origin: DVec3,
-    dir: DVec3,
-    t0: f64,
-    t1: f64,
-    lo: DVec3,
-    hi: DVec3,
-) -> Option<(f64, f64)> {
-    clip_inv(origin, dir.recip(), t0, t1, lo, hi)
-}
-
-/// [`clip_to_box`] with `inv` = 1/`dir` per axis, computed once per ray: a walk clips many
-/// blocks, and a multiplication costs a fraction of a division. An axis whose `inv` is infinite
-/// (a zero or subnormal direction) is parallel to the slabs: inside or a miss, never 0·∞ = NaN.
-#[inline]
-fn clip_inv(
-    origin: DVec3,
-    inv: DVec3,
-    t0: f64,
-    t1: f64,
-    lo: DVec3,
-    hi: DVec3,
-) -> Option<(f64, f64)> {
-    let (mut a, mut b) = (t0, t1);
-    for axis in 0..3 {
-        let o = origin[axis];
-        if !inv[axis].is_finite() {
-            if o < lo[axis] || o > hi[axis] {
-                return None;
-            }
-        } else {
-            let ta = (lo[axis] - o) * inv[axis];
-            let tb = (hi[axis] - o) * inv[axis];
-            let (near, far) = if ta < tb { (ta, tb) } else { (tb, ta) };
-            a = max(a, near);
-            b = min(b, far);
-        }
-    }
-    (a < b).then_some((a, b))
-}
-
-/// The smaller of two numbers that are not NaN (rays are checked finite before walking): one
-/// compare, where `f64::min`'s NaN rules cost several instructions in the DDA's innermost loop.
-#[inline(always)]
-fn min(a: f64, b: f64) -> f64 {
-    if a < b {
-        a
-    } else {
-        b
-    }
-}
-
-/// The larger of two numbers that are not NaN; see [`min`].
-#[inline(always)]
-fn max(a: f64, b: f64) -> f64 {
-    if a > b {
-        a
-    } else {
-        b
-    }
-}
-
 /// Amanatides–Woo walk over cells of edge 2^`log2` voxels, from t0 to t1, cells clamped to
 /// `range` (so a walk started on a node face stays in that node). Calls `visit(cell, ta, tb)` for
 /// every cell crossed over a non-empty interval.
-#[allow(clippy::too_many_arguments)]
 fn walk(
-    origin: DVec3,
-    dir: DVec3,
-    inv: DVec3,
+    ray: &Ray,
     t0: f64,
     t1: f64,
     log2: i32,
     range: (IVec3, IVec3),
     mut visit: impl FnMut(IVec3, f64, f64) -> ControlFlow<()>,
 ) -> ControlFlow<()> {
+    let Ray {
+        origin,
+        dir,
+        inv_dir: inv,
+    } = *ray;
     let size = (1i64 << log2) as f64;
     let start = (origin + dir * t0) / size;
     // `as` saturates, so even an absurd coordinate gives a valid (clamped) cell.
@@ -601,7 +522,7 @@ fn walk(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::sparse::{Leaf, LEAF_VOXELS};
+    use crate::volume::grid::{Leaf, LEAF_VOXELS};
     use crate::volume::Transform;
 
     const EPS: f64 = 1e-5;
@@ -799,7 +720,7 @@ mod tests {
         add_leaf(&mut g, IVec3::new(32, 0, 0), 1.0);
         let occ = Occupancy::build(&g);
         let mut seen = 0;
-        occ.visit_spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 100.0, |_| {
+        occ.visit_spans(&Ray::new(dv(-20.0, 3.5, 3.5), DVec3::X), 0.0, 100.0, |_| {
             seen += 1;
             ControlFlow::Break(())
         });

@@ -1,13 +1,16 @@
-//! Volumes: the OpenVDB reader and the sparse grid it decodes into.
+//! Volumes: the OpenVDB reader, the sparse grid it decodes into, and the density field every ray
+//! samples (the grid with its empty-space and sampling accelerators).
 
 pub mod bricks;
 pub mod dda;
-pub mod sampler;
-pub mod sparse;
+pub mod field;
+pub mod grid;
+mod sampler;
 pub mod transmittance;
 pub mod vdb;
 
-pub use sparse::{SparseGrid, TileLevel, Transform};
+pub use field::DensityField;
+pub use grid::{SparseGrid, TileLevel, Transform};
 
 use std::path::Path;
 

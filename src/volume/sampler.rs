@@ -2,15 +2,14 @@
 //! blocks around the last sample. Consecutive steps of a ray mostly stay in one block, so the hash
 //! lookups (one for the leaf map plus up to three for tiles, per block) are paid once per block
 //! crossed instead of once — or eight times at a block edge — per sample. Results are bit-identical
-//! to `sample_index`: same corner values, same blend. It needs no setup, so the bake's lattice
-//! segments use it; the camera march and the bake's T_ri rays use [`crate::volume::bricks`] and
-//! fall back to it outside the bricks.
+//! to `sample_index`: same corner values, same blend. It needs no setup: [`crate::volume::bricks`] falls back to
+//! it outside the bricks.
 
 use glam::{IVec3, Vec3};
 
-use crate::floor::floor_split;
+use crate::math::floor::floor_split;
 
-use crate::volume::sparse::{corner, trilinear, Block, Leaf, SparseGrid, LEAF_DIM, LEAF_LOG2};
+use crate::volume::grid::{corner, trilinear, Block, Leaf, SparseGrid, LEAF_DIM, LEAF_LOG2};
 
 /// One ray's sampler; cheap to create, not shared between threads.
 pub struct BlockSampler<'a> {
@@ -38,19 +37,6 @@ impl<'a> BlockSampler<'a> {
         let grid = self.grid;
         let key = self.base + d;
         *self.blocks[i].get_or_insert_with(|| grid.block(key))
-    }
-
-    /// What covers block `key`, from the cache when it is one of the eight blocks held.
-    #[inline]
-    pub fn block_at(&mut self, key: IVec3) -> Block<'a> {
-        // Wrapping: the empty cache holds IVec3::MIN, and real keys (voxel >> 3) never wrap into 0..=1.
-        let d = key.wrapping_sub(self.base);
-        if d.cmplt(IVec3::ZERO).any() || d.cmpgt(IVec3::ONE).any() {
-            self.base = key;
-            self.blocks = [None; 8];
-            return self.block(IVec3::ZERO);
-        }
-        self.block(d)
     }
 
     /// Trilinear density at an index-space point, exactly as [`SparseGrid::sample_index`].
@@ -92,7 +78,7 @@ impl<'a> BlockSampler<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::volume::sparse::{TileLevel, LEAF_VOXELS};
+    use crate::volume::grid::{TileLevel, LEAF_VOXELS};
     use crate::volume::Transform;
 
     #[test]

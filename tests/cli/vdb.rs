@@ -142,7 +142,7 @@ fn own_reader_agrees_with_vdb_rs_voxel_for_voxel() {
             for leaf in grid.leaves() {
                 for slot in 0..512 {
                     if leaf.is_active(slot) {
-                        let p = leaf.origin + vscatter::volume::sparse::slot_offset(slot);
+                        let p = leaf.origin + vscatter::volume::grid::slot_offset(slot);
                         let v = seen.get(&(p.to_array(), 0));
                         assert_eq!(v, Some(&leaf.values[slot]), "{file}/{name} voxel {p}");
                         ours_n += 1;

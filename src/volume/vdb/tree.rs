@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::codec::{decode_block, parse_block, ValueBlock, ValueFormat};
 use super::cursor::Cursor;
 use super::VdbError;
-use crate::volume::sparse::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+use crate::volume::grid::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 
 /// Bytes of a leaf's value mask.
 const LEAF_MASK_BYTES: usize = LEAF_VOXELS / 8;

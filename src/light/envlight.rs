@@ -14,16 +14,13 @@ use rand::distr::weighted::WeightedIndex;
 use rand::distr::Distribution;
 use rand::Rng;
 
-use crate::env::{dir_to_uv, Environment};
-use crate::sh;
+use crate::light::env::dir_to_uv;
+use crate::light::sh;
+use crate::light::Lighting;
 
 /// An environment ready for next-event estimation.
 pub struct EnvLight<'a> {
-    env: &'a Environment,
-    /// `--env-rotate`, radians about +Y.
-    angle: f64,
-    /// `--env-scale`.
-    scale: f32,
+    lighting: &'a Lighting,
     /// Pixel choice, `None` when the map is black everywhere (phase sampling alone then finds
     /// nothing, which is right).
     pixels: Option<WeightedIndex<f64>>,
@@ -32,7 +29,8 @@ pub struct EnvLight<'a> {
 }
 
 impl<'a> EnvLight<'a> {
-    pub fn new(env: &'a Environment, angle: f64, scale: f32) -> Self {
+    pub fn new(lighting: &'a Lighting) -> Self {
+        let env = &lighting.env;
         let (w, h) = (env.width(), env.height());
         let weights: Vec<f64> = env
             .pixels()
@@ -51,9 +49,7 @@ impl<'a> EnvLight<'a> {
             Vec::new()
         };
         EnvLight {
-            env,
-            angle,
-            scale,
+            lighting,
             // Fails only when every weight is zero (a black map): nothing to aim at.
             pixels: WeightedIndex::new(&weights).ok(),
             density,
@@ -62,23 +58,20 @@ impl<'a> EnvLight<'a> {
 
     /// Radiance arriving from the world direction `dir` (unit).
     pub fn radiance(&self, dir: Vec3) -> [f32; 3] {
-        let d = [dir.x as f64, dir.y as f64, dir.z as f64];
-        self.env
-            .lookup_rotated(d, self.angle)
-            .map(|v| v * self.scale)
+        self.lighting.radiance(dir)
     }
 
     /// A direction drawn in proportion to the map's brightness, with its density over the sphere;
     /// `None` for a black map.
     pub fn sample(&self, rng: &mut impl Rng) -> Option<(Vec3, f64)> {
         let index = self.pixels.as_ref()?.sample(rng);
-        let (w, h) = (self.env.width(), self.env.height());
+        let (w, h) = (self.lighting.env.width(), self.lighting.env.height());
         let (col, row) = (index % w, index / w);
         let u = (col as f64 + rng.random::<f64>()) / w as f64;
         let v = (row as f64 + rng.random::<f64>()) / h as f64;
         let theta = PI * v;
         let map_dir = sh::direction(theta, 2.0 * PI * u);
-        let [x, y, z] = sh::rotate_dir_y(map_dir, self.angle);
+        let [x, y, z] = sh::rotate_dir_y(map_dir, self.lighting.rotation);
         let dir = Vec3::new(x as f32, y as f32, z as f32).normalize();
         // The density of the f32 direction as `pdf` evaluates it (not of the exact (u, v)): near a
         // pole f32 moves θ by a relative 1e-3, and MIS needs both strategies to weigh a direction
@@ -93,8 +86,8 @@ impl<'a> EnvLight<'a> {
             return 0.0;
         }
         let world = [dir.x as f64, dir.y as f64, dir.z as f64];
-        let (u, v) = dir_to_uv(sh::rotate_dir_y(world, -self.angle));
-        let (w, h) = (self.env.width(), self.env.height());
+        let (u, v) = dir_to_uv(sh::rotate_dir_y(world, -self.lighting.rotation));
+        let (w, h) = (self.lighting.env.width(), self.lighting.env.height());
         let col = ((u * w as f64) as usize).min(w - 1);
         let row = ((v * h as f64) as usize).min(h - 1);
         let sin_theta = (PI * v).sin();
@@ -108,7 +101,18 @@ impl<'a> EnvLight<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::light::env::Environment;
+    use crate::light::sh::Window;
     use rand::SeedableRng;
+
+    fn lighting(env: Environment, rotation: f64, scale: f32) -> Lighting {
+        Lighting {
+            env,
+            rotation,
+            scale,
+            window: Window::None,
+        }
+    }
 
     fn rng() -> rand_pcg::Pcg64Mcg {
         rand_pcg::Pcg64Mcg::seed_from_u64(17)
@@ -141,7 +145,8 @@ mod tests {
             .unwrap()
             .0;
         for (env, expected) in [(constant, 4.0 * PI), (lumpy_env(), 4.0 * PI * 12.0 / 16.0)] {
-            let light = EnvLight::new(&env, 0.7, 2.0);
+            let lit = lighting(env, 0.7, 2.0);
+            let light = EnvLight::new(&lit);
             let mut rng = rng();
             let n = 200_000;
             let mut sum = 0.0;
@@ -160,8 +165,9 @@ mod tests {
     fn samples_follow_brightness_chi_square() {
         // Histogram of sampled pixels (in map space, undoing the rotation) against the expected
         // probabilities P = w/Σw: χ² over the lit pixels with 12·8 − 1 = 95 degrees of freedom.
-        let env = lumpy_env();
-        let light = EnvLight::new(&env, 1.3, 1.0);
+        let lit = lighting(lumpy_env(), 1.3, 1.0);
+        let env = &lit.env;
+        let light = EnvLight::new(&lit);
         let (w, h) = (16usize, 8usize);
         let n = 400_000usize;
         let mut counts = vec![0usize; w * h];
@@ -201,20 +207,10 @@ mod tests {
     }
 
     #[test]
-    fn radiance_matches_the_rotated_scaled_background() {
-        let env = lumpy_env();
-        let light = EnvLight::new(&env, 0.4, 3.0);
-        let d = Vec3::new(0.3, 0.5, -0.8).normalize();
-        let want = env
-            .lookup_rotated([d.x as f64, d.y as f64, d.z as f64], 0.4)
-            .map(|v| v * 3.0);
-        assert_eq!(light.radiance(d), want);
-    }
-
-    #[test]
     fn a_black_map_offers_no_samples() {
         let env = Environment::from_pixels(4, 2, vec![[0.0; 3]; 8]).unwrap().0;
-        let light = EnvLight::new(&env, 0.0, 1.0);
+        let lit = lighting(env, 0.0, 1.0);
+        let light = EnvLight::new(&lit);
         assert!(light.sample(&mut rng()).is_none());
         assert_eq!(light.pdf(Vec3::Y), 0.0);
     }

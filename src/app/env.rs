@@ -4,11 +4,11 @@
 use std::path::Path;
 use std::time::Instant;
 
-use crate::cli::EnvArgs;
-use crate::env::Environment;
-use crate::error::{Error, Result};
-use crate::image::{ImageBuf, WriteOptions};
-use crate::sh;
+use super::args::EnvArgs;
+use vscatter::error::{Error, Result};
+use vscatter::io::image::{ImageBuf, WriteOptions};
+use vscatter::light::env::Environment;
+use vscatter::light::sh;
 
 pub fn run(args: &EnvArgs) -> Result<()> {
     sh::check_bands(args.bands)?;

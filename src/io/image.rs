@@ -13,8 +13,8 @@ use exr::meta::BlockDescription;
 use exr::prelude::{f16, Compression, LayerAttributes, SmallVec};
 use rayon::prelude::*;
 
-use crate::atomic::write_atomic;
 use crate::error::{Error, Result};
+use crate::io::atomic::write_atomic;
 
 /// Lines of an EXR compressed together before they are written: enough blocks to keep every core
 /// busy, few enough that the compressed batch stays a few megabytes.

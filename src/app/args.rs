@@ -5,8 +5,9 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
-use crate::error::{Error, Result};
-use crate::transfer::{lattice::LatticeKind, BakeSettings, Medium};
+use vscatter::error::{Error, Result};
+use vscatter::scene::BakeConfig;
+use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
 
 /// Multiple-scattering relighting of OpenVDB fog volumes.
 #[derive(Debug, Parser)]
@@ -46,7 +47,7 @@ pub enum Command {
     Compare(CompareArgs),
 }
 
-/// Default extinction per world unit per unit density (DESIGN.md).
+/// Default extinction per world unit per unit density (docs/model.md).
 pub const DEFAULT_SIGMA_T: f32 = 1.0;
 /// Default single-scattering albedo: clouds are near 1, 0.9 keeps bakes quick and the look soft.
 pub const DEFAULT_ALBEDO: f32 = 0.9;
@@ -86,7 +87,7 @@ pub struct BakeArgs {
     #[arg(long, value_name = "F", default_value_t = DEFAULT_ALBEDO, allow_negative_numbers = true)]
     pub albedo: f32,
     /// SH bands (bands² coefficients per transfer voxel), 1 to 20.
-    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
+    #[arg(long, value_name = "N", default_value_t = vscatter::light::sh::DEFAULT_BANDS)]
     pub bands: usize,
     /// Density voxels per transfer voxel along each axis (K).
     #[arg(long, value_name = "K", default_value_t = DEFAULT_SCALE)]
@@ -114,20 +115,10 @@ pub struct BakeArgs {
     pub max_memory: Option<String>,
 }
 
-/// Bake flags after validation.
-#[derive(Debug, Clone)]
-pub struct BakeConfig {
-    pub grid: Option<String>,
-    pub medium: Medium,
-    pub settings: BakeSettings,
-    pub half: bool,
-    pub dry_run: bool,
-    pub max_memory: Option<u64>,
-}
-
 impl BakeArgs {
+    /// The bake flags as a validated configuration (`--dry-run` stays a flag of the command).
     pub fn validate(&self) -> Result<BakeConfig> {
-        crate::sh::check_bands(self.bands)?;
+        vscatter::light::sh::check_bands(self.bands)?;
         if !(self.sigma_t.is_finite() && self.sigma_t > 0.0) {
             return Err(Error::usage("--sigma-t must be a positive number"));
         }
@@ -164,7 +155,6 @@ impl BakeArgs {
                 seed: self.seed,
             },
             half: self.cache_half,
-            dry_run: self.dry_run,
             max_memory,
         })
     }
@@ -192,11 +182,11 @@ pub struct EnvArgs {
     #[arg(short, long, value_name = "RECON")]
     pub output: PathBuf,
     /// SH bands (bands² coefficients), 1 to 20.
-    #[arg(long, value_name = "N", default_value_t = crate::sh::DEFAULT_BANDS)]
+    #[arg(long, value_name = "N", default_value_t = vscatter::light::sh::DEFAULT_BANDS)]
     pub bands: usize,
     /// Windowing of the coefficients against ringing (thesis eq. 6.1).
-    #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
-    pub window: crate::sh::Window,
+    #[arg(long, value_enum, default_value_t = vscatter::light::sh::Window::None)]
+    pub window: vscatter::light::sh::Window,
     #[command(flatten)]
     pub png: PngArgs,
     /// Also write the input map itself (after clamping bad pixels), for side-by-side figures.
@@ -247,7 +237,7 @@ pub struct RenderArgs {
     #[arg(short, long, value_name = "OUT")]
     pub output: PathBuf,
     /// Latlong environment (.exr or .hdr), or `sky` for the built-in sky.
-    #[arg(long, value_name = "ENV", default_value = crate::env::SKY_SPEC)]
+    #[arg(long, value_name = "ENV", default_value = vscatter::light::env::SKY_SPEC)]
     pub env: String,
     /// Multiplies the environment's radiance.
     #[arg(
@@ -266,8 +256,8 @@ pub struct RenderArgs {
     )]
     pub env_rotate: f64,
     /// Windowing of the environment's SH coefficients against ringing (thesis eq. 6.1).
-    #[arg(long, value_enum, default_value_t = crate::sh::Window::None)]
-    pub window: crate::sh::Window,
+    #[arg(long, value_enum, default_value_t = vscatter::light::sh::Window::None)]
+    pub window: vscatter::light::sh::Window,
     /// Image size.
     #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_resolution)]
     pub res: (u32, u32),

@@ -38,6 +38,15 @@ pub fn temp_path(path: &Path) -> Result<PathBuf> {
     Ok(path.with_file_name(tmp))
 }
 
+/// Checks, before any long work, that `path` can be written: its directory exists and accepts
+/// a new file (tried with the temporary name the write will use, then removed again).
+pub fn check_writable(path: &Path) -> Result<()> {
+    let tmp = temp_path(path)?;
+    File::create(&tmp).map_err(|e| Error::io(path, e))?;
+    let _ = fs::remove_file(&tmp);
+    Ok(())
+}
+
 /// Writes `path` atomically: `write` fills a buffered temporary file (which can also seek, as the
 /// EXR writer needs), then it is flushed, synced and renamed to `path`. On any failure the temporary
 /// file is removed, nothing appears under `path`, and the error names `path`.

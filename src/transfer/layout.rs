@@ -10,7 +10,7 @@
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
 
-use crate::volume::sparse::{slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
+use crate::volume::grid::{slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
 
 /// log2 of a tile's edge in transfer voxels: 4³ = 64 voxels, one 64-bit occupancy word.
 pub const TILE_LOG2: i32 = 2;
@@ -175,7 +175,7 @@ mod tests {
         let mut mask = [0u64; 8];
         // One active voxel at index (3, 0, 0): nearest transfer voxel at K=6 is round(3/6) = 1
         // (3 + 3).div_euclid(6) = 1, so the core is (1,0,0) and the apron 3×3×3 around it.
-        let s = crate::volume::sparse::Leaf::slot(IVec3::new(3, 0, 0));
+        let s = crate::volume::grid::Leaf::slot(IVec3::new(3, 0, 0));
         mask[s >> 6] |= 1 << (s & 63);
         values[s] = 1.0;
         g.insert_leaf(IVec3::ZERO, mask, values);

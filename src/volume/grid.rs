@@ -8,6 +8,8 @@
 use glam::{DVec3, IVec3, Vec3};
 use hashbrown::HashMap;
 
+use crate::math::ray::Ray;
+
 /// log2 of the leaf edge: 8³ voxels per leaf, as in OpenVDB's `Tree_*_5_4_3`.
 pub const LEAF_LOG2: u32 = 3;
 /// Voxels along a leaf edge.
@@ -75,6 +77,15 @@ impl Transform {
 
     pub fn world_to_index(&self, world: DVec3) -> DVec3 {
         (world - self.translation) / self.scale
+    }
+
+    /// The world ray from `origin` along unit `dir`, in index space with its direction per world
+    /// unit: points move to index space, and `t` stays a world distance.
+    pub fn ray_to_index(&self, origin: Vec3, dir: Vec3) -> Ray {
+        Ray::new(
+            self.world_to_index(origin.as_dvec3()),
+            dir.as_dvec3() / self.scale,
+        )
     }
 
     /// The edge lengths of one voxel in world units.

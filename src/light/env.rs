@@ -1,6 +1,6 @@
 //! Environment maps (DESIGN.md "Environment"): latitude–longitude radiance images read from OpenEXR
 //! or Radiance `.hdr`, or the built-in procedural sky; bilinear lookup by direction; projection onto
-//! SH by the deterministic pixel quadrature of [`crate::sh`].
+//! SH by the deterministic pixel quadrature of [`crate::light::sh`].
 
 use std::f64::consts::PI;
 use std::fs::File;
@@ -8,8 +8,8 @@ use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::floor::floor;
-use crate::sh::{self, ShRgb};
+use crate::light::sh::{self, ShRgb};
+use crate::math::floor::floor;
 
 /// The `--env` value that selects the built-in sky instead of a file.
 pub const SKY_SPEC: &str = "sky";
@@ -202,7 +202,7 @@ impl Environment {
     }
 
     /// [`Environment::lookup`] of the map turned by `angle` radians about +Y, with the convention
-    /// of [`crate::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
+    /// of [`crate::light::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
     /// background matches rotated SH lighting.
     pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
         // No turn is the common case; it skips a sin_cos per lookup.
@@ -278,7 +278,8 @@ fn check_size(path: &Path, width: usize, height: usize) -> Result<()> {
 type Pixels = (usize, usize, Vec<[f32; 3]>);
 
 fn read_exr(path: &Path) -> Result<Pixels> {
-    let (width, height, rgba) = crate::image::read_exr_rgba(path, |w, h| check_size(path, w, h))?;
+    let (width, height, rgba) =
+        crate::io::image::read_exr_rgba(path, |w, h| check_size(path, w, h))?;
     Ok((
         width,
         height,

@@ -5,14 +5,14 @@ use std::io::Write;
 
 use serde_json::{json, Value};
 
-use crate::cli::InfoArgs;
-use crate::error::{Error, Result};
-use crate::volume::vdb::{GridInfo, ValueKind, VdbFile};
-use crate::volume::SparseGrid;
+use super::args::InfoArgs;
+use vscatter::error::{Error, Result};
+use vscatter::volume::vdb::{GridInfo, ValueKind, VdbFile};
+use vscatter::volume::SparseGrid;
 
 /// Runs `vscatter info`: a `.vtc` cache (recognised by its magic) or a VDB file.
 pub fn run(args: &InfoArgs) -> Result<()> {
-    if crate::transfer::cache::is_cache(&args.file)? {
+    if vscatter::transfer::cache::is_cache(&args.file)? {
         return cache_info(args);
     }
     let vdb = VdbFile::open(&args.file)?;
@@ -49,7 +49,7 @@ pub fn run(args: &InfoArgs) -> Result<()> {
 /// Describes a transfer cache: its header, checked against the file's size (not its checksum,
 /// so `info` stays instant on big caches).
 fn cache_info(args: &InfoArgs) -> Result<()> {
-    let h = crate::transfer::cache::read_header(&args.file)?;
+    let h = vscatter::transfer::cache::verify(&args.file)?;
     let size = std::fs::metadata(&args.file)
         .map_err(|e| Error::io(&args.file, e))?
         .len();
@@ -57,13 +57,13 @@ fn cache_info(args: &InfoArgs) -> Result<()> {
         let mut v = serde_json::to_value(&h).map_err(|e| Error::Runtime(e.to_string()))?;
         v["file"] = json!(args.file.display().to_string());
         v["file_bytes"] = json!(size);
-        v["format_version"] = json!(crate::transfer::cache::VERSION);
+        v["format_version"] = json!(vscatter::transfer::cache::VERSION);
         format!("{v:#}\n")
     } else {
         format!(
             "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients\n",
             args.file.display(),
-            crate::transfer::cache::VERSION,
+            vscatter::transfer::cache::VERSION,
             indicatif::HumanBytes(size),
             h.source.name,
             h.source.grid,

@@ -1,0 +1,96 @@
+//! `vscatter bake`: read a VDB density, plan the bake (memory estimate and budget), bake the
+//! transfer (single scattering, then the lattice) and write a `.vtc` cache — with a progress bar
+//! per phase and `--stats`.
+
+use std::time::Instant;
+
+use serde_json::json;
+
+use super::args::{BakeCmd, GlobalArgs};
+use vscatter::io::atomic::check_writable;
+use vscatter::io::meminfo::peak_memory;
+use vscatter::scene::{BakeConfig, Scene};
+use vscatter::transfer::BakeStats;
+use vscatter::Result;
+
+/// Runs `vscatter bake`.
+pub fn run(cmd: &BakeCmd, global: &GlobalArgs) -> Result<()> {
+    let config = cmd.bake.validate()?;
+    check_writable(&cmd.output)?;
+    let mut scene = Scene::open(&cmd.input, &config)?;
+    if scene.transfer.is_some() {
+        return Err(vscatter::Error::usage(format!(
+            "{}: already a transfer cache; bake reads a VDB file",
+            cmd.input.display()
+        )));
+    }
+    let Some(stats) = prepare_bake(&mut scene, &config, cmd.bake.dry_run, global)? else {
+        return Ok(());
+    };
+    let clock = Instant::now();
+    scene.write_cache(&cmd.output, &config)?;
+    let write_seconds = clock.elapsed().as_secs_f64();
+    if !global.quiet {
+        eprintln!(
+            "baked {} -> {}: {} transfer voxels, {}",
+            cmd.input.display(),
+            cmd.output.display(),
+            stats.transfer_voxels,
+            match &stats.lattice {
+                Some(l) => format!("{} lattice generations", l.generations),
+                None => "single scattering only".into(),
+            }
+        );
+    }
+    if global.stats {
+        let mut j = bake_stats_json(&stats);
+        j["load_seconds"] = json!(scene.read_seconds + scene.field_seconds);
+        j["write_seconds"] = json!(write_seconds);
+        j["peak_memory_bytes"] = json!(peak_memory());
+        println!("{j}");
+    }
+    Ok(())
+}
+
+/// Plans the bake of `scene` and, unless `--dry-run` (which prints the plan and returns `None`),
+/// checks the memory budget and bakes. Warnings come before a plan or a bake, never before a
+/// refusal, so an error stays one line.
+pub fn prepare_bake(
+    scene: &mut Scene,
+    config: &BakeConfig,
+    dry_run: bool,
+    global: &GlobalArgs,
+) -> Result<Option<BakeStats>> {
+    let plan = scene.plan(&config.settings);
+    if dry_run {
+        warn(&scene.warnings(config.settings.scale));
+        println!("{}", plan.describe());
+        return Ok(None);
+    }
+    plan.check_budget(&scene.field, &config.settings, config.max_memory)?;
+    warn(&scene.warnings(config.settings.scale));
+    Ok(Some(scene.bake(config, global.quiet)))
+}
+
+/// Prints each warning as one line. `--quiet` hides progress, never a warning.
+pub fn warn(warnings: &[String]) {
+    for w in warnings {
+        eprintln!("vscatter: warning: {w}");
+    }
+}
+
+/// The `--stats` JSON of a bake.
+pub fn bake_stats_json(stats: &BakeStats) -> serde_json::Value {
+    json!({
+        "layout_seconds": stats.layout_seconds,
+        "single_seconds": stats.single_seconds,
+        "lattice_seconds": stats.lattice_seconds,
+        "transfer_voxels": stats.transfer_voxels,
+        "transfer_tiles": stats.transfer_tiles,
+        "lattice_generations": stats.lattice.map(|l| l.generations),
+        "lattice_converged": stats.lattice.map(|l| l.converged),
+        "energy_single": stats.lattice.map(|l| l.energy_single),
+        "energy_multiple": stats.lattice.map(|l| l.energy_multiple),
+        "energy_remaining": stats.lattice.map(|l| l.remaining),
+    })
+}

@@ -1,0 +1,5 @@
+//! Small numeric pieces the volume, the bake and the renderers share: rays and box clipping, fast
+//! floors.
+
+pub mod floor;
+pub mod ray;

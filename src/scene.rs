@@ -1,0 +1,217 @@
+//! The pipeline every command goes through: open a volume (a VDB density or a `.vtc` cache),
+//! bake its transfer when it has none, and render it — with the transfer or the path tracer —
+//! under a [`Lighting`]. `render`, and any other front end, calls these and nothing below them.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use indicatif::ProgressBar;
+
+use crate::error::Result;
+use crate::light::Lighting;
+use crate::pathtrace::{Medium3d, PathStats, PathTracer};
+use crate::render::{self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats};
+use crate::transfer::cache::{self, Source};
+use crate::transfer::memory::BakePlan;
+use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer};
+use crate::volume::{load_density, DensityField};
+
+/// How to bake, validated: the grid to read, the medium, the bake settings and the cache's form.
+#[derive(Debug, Clone)]
+pub struct BakeConfig {
+    /// The grid to read from a VDB (`None`: `density`, else the first scalar grid).
+    pub grid: Option<String>,
+    pub medium: Medium,
+    pub settings: BakeSettings,
+    /// Store coefficients as f16.
+    pub half: bool,
+    /// Refuse bakes estimated above this many bytes (`None`: a share of available memory).
+    pub max_memory: Option<u64>,
+}
+
+/// A volume ready to render: its density field, its medium and, once baked or read, its transfer.
+pub struct Scene {
+    pub field: DensityField,
+    pub medium: Medium,
+    pub transfer: Option<Transfer>,
+    /// The source file's identity, for a cache written from this scene (`None` for a cache).
+    source: Option<Source>,
+    /// The cache the transfer was read from, when it was.
+    pub cache: Option<PathBuf>,
+    /// Seconds spent reading the input and building the density's accelerators.
+    pub read_seconds: f64,
+    pub field_seconds: f64,
+}
+
+impl Scene {
+    /// Opens `path`: a `.vtc` cache (density, medium and transfer; recognised by its content, so
+    /// a renamed file still works), or a VDB file whose density grid `config.grid` chooses, with
+    /// the medium of `config`.
+    pub fn open(path: &Path, config: &BakeConfig) -> Result<Scene> {
+        let clock = Instant::now();
+        let (grid, medium, transfer, source, cache) = if cache::is_cache(path)? {
+            let c = cache::read(path)?;
+            let medium = c.transfer.medium;
+            (c.density, medium, Some(c.transfer), None, Some(path.into()))
+        } else {
+            let loaded = load_density(path, config.grid.as_deref())?;
+            let source = Source::of(path, &loaded.name)?;
+            (loaded.grid, config.medium, None, Some(source), None)
+        };
+        let read_seconds = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let field = DensityField::new(grid);
+        Ok(Scene {
+            field,
+            medium,
+            transfer,
+            source,
+            cache,
+            read_seconds,
+            field_seconds: clock.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Takes the transfer from the cache at `path` when it was baked from this very source with
+    /// these settings; returns whether it did. A missing cache, or one in an older format (what
+    /// a bake computes changed), is stale and the caller bakes afresh; a damaged one is an error.
+    pub fn reuse_cache(&mut self, path: &Path, config: &BakeConfig) -> Result<bool> {
+        let Some(source) = &self.source else {
+            return Ok(false);
+        };
+        if !path.exists() || cache::format_version(path)?.is_some_and(|v| v < cache::VERSION) {
+            return Ok(false);
+        }
+        let c = cache::read(path)?;
+        let h = &c.header;
+        let same = &h.source == source
+            && h.settings().as_ref() == Some(&config.settings)
+            && h.sigma_t == config.medium.sigma_t
+            && h.albedo == config.medium.albedo
+            && (h.coefficients == "f16") == config.half;
+        if same {
+            self.transfer = Some(c.transfer);
+            self.cache = Some(path.into());
+        }
+        Ok(same)
+    }
+
+    /// What baking this scene with `settings` will make and need, before it runs.
+    pub fn plan(&self, settings: &BakeSettings) -> BakePlan {
+        BakePlan::new(&self.field, settings)
+    }
+
+    /// Bakes the transfer (check [`BakePlan::check_budget`] first: a bake allocates what its
+    /// plan says), with progress bars unless `quiet`.
+    pub fn bake(&mut self, config: &BakeConfig, quiet: bool) -> BakeStats {
+        let (transfer, stats) =
+            crate::transfer::bake(&self.field, config.medium, &config.settings, quiet);
+        self.medium = config.medium;
+        self.transfer = Some(transfer);
+        stats
+    }
+
+    /// Writes the baked transfer with the density to a cache at `path` (atomically).
+    pub fn write_cache(&self, path: &Path, config: &BakeConfig) -> Result<()> {
+        let (Some(transfer), Some(source)) = (&self.transfer, &self.source) else {
+            return Err(crate::Error::Runtime(format!(
+                "{}: nothing baked to write",
+                path.display()
+            )));
+        };
+        let grid = &self.field.grid;
+        let header = cache::header(
+            grid,
+            transfer,
+            &config.settings,
+            source.clone(),
+            config.half,
+        );
+        cache::write(path, &header, grid, transfer)
+    }
+
+    /// What a user should know before trusting a picture of this scene: a volume with no density
+    /// to show, or transfer voxels too thick to resolve the light.
+    pub fn warnings(&self, scale: i32) -> Vec<String> {
+        let grid = &self.field.grid;
+        let scale = self.transfer.as_ref().map_or(scale, |t| t.layout.k);
+        if grid.value_stats().is_none_or(|s| s.max <= 0.0) {
+            return vec![
+                "the volume has no positive density: the picture shows only the environment".into(),
+            ];
+        }
+        crate::transfer::resolution_warning(grid, self.medium, scale)
+            .into_iter()
+            .collect()
+    }
+
+    /// The camera of `spec` for this volume (framing it when `spec` has no position).
+    pub fn camera(&self, spec: &CameraSpec) -> Result<Camera> {
+        spec.camera(render::world_bounds(&self.field.grid))
+    }
+
+    /// Relights the transfer under `lighting` and marches it as `camera` sees it, with the
+    /// environment behind the volume unless `background` is false.
+    pub fn render(
+        &self,
+        camera: &Camera,
+        lighting: &Lighting,
+        background: bool,
+        settings: &MarchSettings,
+        progress: &ProgressBar,
+    ) -> Result<(Frame, MarchStats, render::RenderReport)> {
+        let Some(transfer) = &self.transfer else {
+            return Err(crate::Error::Runtime(
+                "the scene has no transfer: bake it first".into(),
+            ));
+        };
+        let lookup = |d| lighting.radiance(d);
+        let background: Option<Background> = background.then_some(&lookup);
+        Ok(render::render_volume(
+            &self.field,
+            transfer,
+            lighting,
+            background,
+            camera,
+            settings,
+            progress,
+        ))
+    }
+
+    /// Path-traces the density under `lighting`: the ground truth the transfer is measured against.
+    pub fn pathtrace(
+        &self,
+        camera: &Camera,
+        lighting: &Lighting,
+        background: bool,
+        trace: &TraceSettings,
+        progress: &ProgressBar,
+    ) -> (Frame, PathStats) {
+        let light = lighting.sampler();
+        let tracer = PathTracer {
+            medium: Medium3d {
+                field: &self.field,
+                sigma_t: self.medium.sigma_t,
+            },
+            albedo: self.medium.albedo,
+            light: &light,
+            max_bounces: trace.max_bounces,
+            seed: trace.seed,
+        };
+        let lookup = |d| lighting.radiance(d);
+        let background: Option<Background> = background.then_some(&lookup);
+        render::film::render_frame(camera, trace.spp, background, progress, |sample, stats| {
+            tracer.trace(sample, stats)
+        })
+    }
+}
+
+/// How to path-trace.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TraceSettings {
+    pub spp: u32,
+    /// Most scattering events per path (1: single scattering).
+    pub max_bounces: u32,
+    /// Picks the random streams; the image is the same on any thread count.
+    pub seed: u64,
+}

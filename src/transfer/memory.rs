@@ -1,0 +1,157 @@
+//! How much memory a bake will take, estimated before anything big is allocated, and the budget
+//! check that refuses a bake too large for the machine — naming the settings that would fit.
+
+use indicatif::HumanBytes as human;
+
+use super::{lattice::LatticeKind, single, BakeSettings, TransferLayout};
+use crate::error::{Error, Result};
+use crate::volume::DensityField;
+
+/// Resident memory of the process before a bake allocates anything (binary, thread stacks,
+/// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
+const PROCESS_BASELINE: u64 = 24 << 20;
+
+/// Share of available memory a bake may plan to use by default: the rest stays for the system
+/// and other processes.
+pub const DEFAULT_MEMORY_SHARE: f64 = 0.8;
+
+/// Peak memory of a bake, estimated before anything big is allocated.
+#[derive(Debug, Clone, Copy)]
+pub struct MemoryEstimate {
+    /// The density and its accelerators (bricks, occupancy), held through the whole bake.
+    pub density: u64,
+    pub layout: u64,
+    /// T_ri and F_ms as kept in memory (f32).
+    pub transfer: u64,
+    /// The larger of the single-scattering and lattice phases' working memory.
+    pub working: u64,
+}
+
+impl MemoryEstimate {
+    fn new(
+        field_bytes: usize,
+        layout_bytes: usize,
+        voxels: usize,
+        settings: &BakeSettings,
+        threads: usize,
+    ) -> MemoryEstimate {
+        let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
+        let one = n * c * 4;
+        let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
+        // Single: the point values kept beside the fitted T_ri, and batch results before they
+        // are scattered into either (two more copies of T_ri).
+        let single = 2 * one + sets;
+        // Lattice: per-chunk results (one more copy); per link a target and four segment values
+        // (20 bytes) and a sweep-order entry (4); four chunk buffers a thread.
+        let d = settings.lattice.directions() as u64;
+        // The point values of T_ri stay alive through the lattice (one more copy).
+        let lattice = if settings.single_scatter {
+            0
+        } else {
+            2 * one + n * d * 24 + threads as u64 * 4 * n * 8 * 4
+        };
+        MemoryEstimate {
+            density: field_bytes as u64,
+            layout: layout_bytes as u64,
+            transfer: 2 * one,
+            working: single.max(lattice) + PROCESS_BASELINE,
+        }
+    }
+
+    pub fn total(&self) -> u64 {
+        self.density + self.layout + self.transfer + self.working
+    }
+}
+
+/// What a bake of a density with given settings will make, before it runs.
+#[derive(Debug, Clone, Copy)]
+pub struct BakePlan {
+    pub transfer_voxels: usize,
+    pub transfer_tiles: usize,
+    pub estimate: MemoryEstimate,
+}
+
+impl BakePlan {
+    pub fn new(field: &DensityField, settings: &BakeSettings) -> BakePlan {
+        let layout = TransferLayout::build(&field.grid, settings.scale);
+        BakePlan {
+            transfer_voxels: layout.len(),
+            transfer_tiles: layout.tile_count(),
+            estimate: estimate(field, layout.memory_bytes(), layout.len(), settings),
+        }
+    }
+
+    /// The estimate as one line: counts, total and its parts.
+    pub fn describe(&self) -> String {
+        let e = &self.estimate;
+        format!(
+            "{} transfer voxels in {} tiles; estimated peak memory {} (density {}, transfer {}, working {})",
+            self.transfer_voxels,
+            self.transfer_tiles,
+            human(e.total()),
+            human(e.density),
+            human(e.transfer),
+            human(e.working)
+        )
+    }
+
+    /// Refuses a bake estimated above `limit` (`None`: [`DEFAULT_MEMORY_SHARE`] of the memory
+    /// the system can still give), naming the `--scale`, `--bands` and `--lattice` that would
+    /// need less.
+    pub fn check_budget(
+        &self,
+        field: &DensityField,
+        settings: &BakeSettings,
+        limit: Option<u64>,
+    ) -> Result<()> {
+        let limit = limit.or_else(|| {
+            crate::io::meminfo::available_memory().map(|a| (a as f64 * DEFAULT_MEMORY_SHARE) as u64)
+        });
+        let Some(limit) = limit.filter(|l| self.estimate.total() > *l) else {
+            return Ok(());
+        };
+        let layout_bytes = self.estimate.layout as usize;
+        let n = self.transfer_voxels;
+        let s = *settings;
+        // A coarser K shrinks the voxel count roughly with K³.
+        let k2 = s.scale + 2;
+        let shrink = (s.scale as f64 / k2 as f64).powi(3);
+        let coarser = BakeSettings { scale: k2, ..s };
+        let fewer = BakeSettings {
+            bands: s.bands.saturating_sub(2).max(1),
+            ..s
+        };
+        let faces = BakeSettings {
+            lattice: LatticeKind::Faces,
+            ..s
+        };
+        let need = |settings: &BakeSettings, voxels: usize| {
+            human(estimate(field, layout_bytes, voxels, settings).total())
+        };
+        Err(Error::Runtime(format!(
+            "this bake needs about {} but may use {} (--max-memory); --scale {} would need about {}, --bands {} about {}, --lattice 6 about {}",
+            human(self.estimate.total()),
+            human(limit),
+            k2,
+            need(&coarser, (n as f64 * shrink) as usize),
+            fewer.bands,
+            need(&fewer, n),
+            need(&faces, n),
+        )))
+    }
+}
+
+fn estimate(
+    field: &DensityField,
+    layout_bytes: usize,
+    voxels: usize,
+    settings: &BakeSettings,
+) -> MemoryEstimate {
+    MemoryEstimate::new(
+        field.grid.memory_bytes() + field.accelerator_bytes(),
+        layout_bytes,
+        voxels,
+        settings,
+        rayon::current_num_threads(),
+    )
+}
