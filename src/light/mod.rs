@@ -3,7 +3,7 @@
 //! light.
 
 pub mod env;
-pub mod envlight;
+pub(crate) mod envlight;
 pub mod sh;
 
 use glam::Vec3;

@@ -342,8 +342,10 @@ impl<const N: usize> Sh<N> {
         out
     }
 
-    /// The function's value in the unit direction `dir`.
-    pub fn eval(&self, dir: [f64; 3]) -> [f32; N] {
+    /// The function's value in the unit direction `dir` (tests evaluate projections with it; the
+    /// renderers only ever take dot products of coefficients).
+    #[cfg(test)]
+    pub(crate) fn eval(&self, dir: [f64; 3]) -> [f32; N] {
         let mut basis = [0.0f64; coeff_count(MAX_BANDS)];
         eval_basis(dir, self.bands, &mut basis);
         let mut v = [0.0f64; N];

@@ -128,11 +128,6 @@ impl Camera {
         let dir = (self.forward + ndc.x * self.right + ndc.y * self.up).normalize();
         (self.position, dir)
     }
-
-    /// Horizontal field of view in degrees.
-    pub fn fov_x_deg(&self) -> f32 {
-        2.0 * self.tan_half.x.atan().to_degrees()
-    }
 }
 
 /// A well-mixed 32-bit integer hash (Wellons' "lowbias32"): deterministic jitter from pixel
@@ -213,7 +208,6 @@ mod tests {
             let (_, r) = cam.ray(w as f32, h as f32 / 2.0);
             assert!((angle_deg(l, r) - fov).abs() < 1e-3, "fov {fov}");
             assert!((angle_deg(l, cam.forward) - fov / 2.0).abs() < 1e-3);
-            assert!((cam.fov_x_deg() - fov).abs() < 1e-4);
             // Square pixels: the vertical half-angle follows from the aspect ratio.
             let (_, t) = cam.ray(w as f32 / 2.0, 0.0);
             let expect = ((fov / 2.0).to_radians().tan() * h as f32 / w as f32)

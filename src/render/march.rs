@@ -322,18 +322,10 @@ pub fn march_ray<S: InScatter>(
 }
 
 /// Renders `camera`'s view of `scene`: image tiles in parallel, `settings.spp` jittered samples per
-/// pixel averaged with a box filter. Deterministic: every sample position comes from a hash of its
-/// pixel and index, never from the thread that runs it.
+/// pixel averaged with a box filter, `progress` advanced by one per finished tile. Deterministic:
+/// every sample position comes from a hash of its pixel and index, never from the thread that runs
+/// it.
 pub fn render<S: InScatter>(
-    scene: &Scene<S>,
-    camera: &Camera,
-    settings: &MarchSettings,
-) -> (Frame, MarchStats) {
-    render_with_progress(scene, camera, settings, &ProgressBar::hidden())
-}
-
-/// [`render`], advancing `progress` by one per finished image tile.
-pub fn render_with_progress<S: InScatter>(
     scene: &Scene<S>,
     camera: &Camera,
     settings: &MarchSettings,
@@ -456,7 +448,7 @@ mod tests {
                         ..MarchSettings::default()
                     };
                     for cam in cameras(&zeros, 24, 16) {
-                        let (frame, _) = render(&scene, &cam, &settings);
+                        let (frame, _) = render(&scene, &cam, &settings, &ProgressBar::hidden());
                         for (i, px) in frame.rgba.iter().enumerate() {
                             let (x, y) = (i as u32 % 24, i as u32 / 24);
                             let (_, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
@@ -538,7 +530,7 @@ mod tests {
         let bhi = g.transform.index_to_world(DVec3::splat(127.5));
         let (mut face_rays, mut hits) = (0, 0);
         for cam in cameras(&g, w, h) {
-            let (frame, _) = render(&scene, &cam, &settings);
+            let (frame, _) = render(&scene, &cam, &settings, &ProgressBar::hidden());
             for (i, px) in frame.rgba.iter().enumerate() {
                 let (x, y) = (i as u32 % w, i as u32 / w);
                 let (origin, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
@@ -579,7 +571,12 @@ mod tests {
         for sigma_t in [0.5f32, 4.0, 200.0] {
             let scene = Scene::new(&field, medium(sigma_t, 1.0), &source, Some(&bg));
             for cam in cameras(&g, 16, 12) {
-                let (frame, _) = render(&scene, &cam, &MarchSettings::default());
+                let (frame, _) = render(
+                    &scene,
+                    &cam,
+                    &MarchSettings::default(),
+                    &ProgressBar::hidden(),
+                );
                 for px in &frame.rgba {
                     for ch in 0..3 {
                         assert!((px[ch] - c[ch]).abs() < 1e-5 * c[ch], "{px:?}");
@@ -620,8 +617,8 @@ mod tests {
                     skip_empty: false,
                     ..settings
                 };
-                let (a, sa) = render(&scene, &cam, &settings);
-                let (b, sb) = render(&scene, &cam, &plain);
+                let (a, sa) = render(&scene, &cam, &settings, &ProgressBar::hidden());
+                let (b, sb) = render(&scene, &cam, &plain, &ProgressBar::hidden());
                 assert_eq!(a, b);
                 assert_eq!(sb.samples_skipped, 0);
                 assert_eq!(sa.samples_taken + sa.samples_skipped, sb.samples_taken);
@@ -638,8 +635,16 @@ mod tests {
         let source = uniform([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
         let scene = Scene::new(&field, medium(0.01, 0.5), &source, None);
         let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 20, 45.0).unwrap();
-        let (frame, stats) = render(&scene, &cam, &MarchSettings::default());
+        let (frame, stats) = render(
+            &scene,
+            &cam,
+            &MarchSettings::default(),
+            &ProgressBar::hidden(),
+        );
         assert_eq!(stats.rays, 400);
+        // The framing camera sees the tile fill most of the frame: the checks below run on them.
+        let covered = frame.rgba.iter().filter(|px| px[3] > 0.0).count();
+        assert!(covered > 200, "{covered} of 400 pixels see the tile");
         for (i, px) in frame.rgba.iter().enumerate() {
             let alpha = px[3];
             if alpha == 0.0 {
@@ -772,12 +777,17 @@ mod tests {
         let sigma_t = 8.0 / (96.0 * g.transform.voxel_size().x as f32);
         let source = smooth();
         let scene = Scene::new(&field, medium(sigma_t, 0.9), &source, Some(&sky));
-        let (a, sa) = render(&scene, &cam, &MarchSettings::default());
+        let (a, sa) = render(
+            &scene,
+            &cam,
+            &MarchSettings::default(),
+            &ProgressBar::hidden(),
+        );
         let plain = MarchSettings {
             skip_empty: false,
             ..MarchSettings::default()
         };
-        let (b, _) = render(&scene, &cam, &plain);
+        let (b, _) = render(&scene, &cam, &plain, &ProgressBar::hidden());
         assert_eq!(a, b);
         assert!(sa.samples_skipped > 0);
         // The cloud blocks part of the sky: some pixels are mostly volume.

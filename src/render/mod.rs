@@ -2,19 +2,21 @@
 //! empty-space-skipping ray march that turns both into an image. [`render_volume`] is the one entry
 //! point once there is a density field, a transfer and a lighting.
 
-pub mod camera;
-pub mod film;
-pub mod march;
-pub mod relight;
+pub(crate) mod camera;
+pub(crate) mod film;
+mod march;
+mod relight;
 
 use std::time::{Duration, Instant};
 
 use glam::{DVec3, Vec3};
 
 pub use camera::Camera;
-pub use film::{Background, Frame, RayResult};
-pub use march::{render, MarchSettings, MarchStats, Scene};
-pub use relight::{relight, Radiance};
+pub use film::{Background, Frame};
+pub use march::{MarchSettings, MarchStats};
+
+use march::Scene;
+use relight::relight;
 
 use crate::error::Result;
 use crate::io::image::{ImageBuf, Layer};
@@ -92,7 +94,7 @@ pub fn render_volume(
     let relight_time = t.elapsed();
     let t = Instant::now();
     let scene = Scene::new(field, transfer.medium, &source, background);
-    let (frame, stats) = march::render_with_progress(&scene, camera, settings, progress);
+    let (frame, stats) = march::render(&scene, camera, settings, progress);
     let report = RenderReport {
         project,
         relight: relight_time,

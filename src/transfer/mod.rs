@@ -3,11 +3,11 @@
 //! scattering events (`f_ms`, thesis 4.2) — independent of any environment.
 
 pub mod cache;
-pub mod fit;
+mod fit;
 pub mod lattice;
-pub mod layout;
+mod layout;
 pub mod memory;
-pub mod single;
+mod single;
 #[cfg(test)]
 mod tests;
 

@@ -111,17 +111,6 @@ impl Bricks {
     pub fn memory_bytes(&self) -> usize {
         bytes(self.values.capacity(), self.entries.capacity())
     }
-
-    /// What [`Bricks::build`] will take for `grid`, counted without filling a brick: for memory
-    /// estimates made before a bake.
-    pub fn planned_bytes(grid: &SparseGrid) -> usize {
-        let keys = keys(grid);
-        let bricks = keys
-            .par_iter()
-            .filter(|&&key| uniform(&window(grid, key)).is_none())
-            .count();
-        bytes(bricks, keys.len())
-    }
 }
 
 /// The blocks that get an entry: every block within one of a leaf or a block tile, sorted
@@ -277,10 +266,6 @@ mod tests {
         g.insert_leaf(IVec3::new(-8, 0, 0), [u64::MAX; 8], values);
         let bricks = Bricks::build(&g);
         assert!(bricks.memory_bytes() > bricks.values.len() * BRICK_VOXELS * 4);
-        assert_eq!(
-            Bricks::planned_bytes(&g),
-            bytes(bricks.values.len(), bricks.entries.len())
-        );
         assert!(!bricks.values.is_empty());
         let mut sampler = BrickSampler::new(&bricks, &g);
         // A wandering walk that crosses block faces, edges and corners, forwards and backwards.

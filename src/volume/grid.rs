@@ -341,14 +341,6 @@ impl SparseGrid {
         }
     }
 
-    /// Largest value inside the 8³ block `key`: for skipping and majorants.
-    pub fn block_max(&self, key: IVec3) -> f32 {
-        match self.block(key) {
-            Block::Leaf(leaf) => leaf.max,
-            Block::Constant(v) => v,
-        }
-    }
-
     /// Largest value inside the 128³ node `key` (= voxel `>> 7`), the coarse occupancy level.
     pub fn node_max(&self, key: IVec3) -> f32 {
         let root = self.tiles[TileLevel::Root.index()]
@@ -360,11 +352,11 @@ impl SparseGrid {
         }
     }
 
-    /// Trilinear density at an index-space point.
-    /// The reference implementation: eight lookups; marches use the cached
-    /// [`BlockSampler`](crate::volume::sampler::BlockSampler) or the apron
-    /// [`Bricks`](crate::volume::bricks::Bricks), which give identical results.
-    pub fn sample_index(&self, p: Vec3) -> f32 {
+    /// Trilinear density at an index-space point: the reference the tests hold the samplers to
+    /// (eight plain lookups); every ray samples through
+    /// [`DensityField::sampler`](crate::volume::DensityField::sampler), bit for bit the same.
+    #[cfg(test)]
+    pub(crate) fn sample_index(&self, p: Vec3) -> f32 {
         let base = p.floor();
         let i0 = base.as_ivec3();
         let c = std::array::from_fn(|n| self.value(i0 + corner(n)));
@@ -483,8 +475,6 @@ mod tests {
         assert_eq!(g.value(IVec3::new(9, 0, 0)), 0.0);
         assert_eq!(g.active_voxels(), 512 + 64);
         assert_eq!(g.tile_count(), 1);
-        assert_eq!(g.block_max(IVec3::ZERO), 2.0);
-        assert_eq!(g.block_max(IVec3::new(1, 0, 0)), 1.0);
         assert_eq!(g.node_max(IVec3::ZERO), 2.0);
         assert_eq!(g.node_max(IVec3::new(1, 0, 0)), 0.0);
         assert_eq!(g.active_bbox(), Some((IVec3::ZERO, IVec3::new(8, 7, 7))));

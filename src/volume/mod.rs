@@ -1,12 +1,12 @@
 //! Volumes: the OpenVDB reader, the sparse grid it decodes into, and the density field every ray
 //! samples (the grid with its empty-space and sampling accelerators).
 
-pub mod bricks;
-pub mod dda;
-pub mod field;
+pub(crate) mod bricks;
+pub(crate) mod dda;
+mod field;
 pub mod grid;
 mod sampler;
-pub mod transmittance;
+pub(crate) mod transmittance;
 pub mod vdb;
 
 pub use field::DensityField;

@@ -143,6 +143,7 @@ fn render_refuses_bad_flags_cleanly() {
 fn render_keeps_and_reuses_its_bake() {
     let dir = tempfile::tempdir().unwrap();
     let input = fixture("small_cloud.vdb");
+    // Whether the render baked (its --stats line has a `bake` part) and what it said on stderr.
     let run = |out: &str, albedo: &str| {
         let mut args = vec![
             "render",
@@ -155,36 +156,37 @@ fn render_keeps_and_reuses_its_bake() {
             "kept.vtc",
             "--albedo",
             albedo,
+            "--stats",
         ];
         args.extend(QUICK_BAKE);
         let o = vscatter_in(dir.path(), &args);
         assert!(o.status.success(), "{}", stderr(&o));
+        let stats: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        (stats.get("bake").is_some(), stderr(&o))
     };
-    run("a.exr", "0.9");
+    let (baked, said) = run("a.exr", "0.9");
+    assert!(baked && !said.contains("using cache"), "{said}");
     let cache = dir.path().join("kept.vtc");
-    let first = std::fs::metadata(&cache).unwrap().modified().unwrap();
-    std::thread::sleep(std::time::Duration::from_millis(20));
-    run("b.exr", "0.9");
-    // Reused: the cache is untouched and the image identical.
-    assert_eq!(
-        std::fs::metadata(&cache).unwrap().modified().unwrap(),
-        first
-    );
+    let kept = std::fs::read(&cache).unwrap();
+    // Reused: no bake, one line saying so, the cache untouched and the image identical.
+    let (baked, said) = run("b.exr", "0.9");
+    assert!(!baked, "baked again");
+    assert_eq!(said.trim_end(), format!("using cache {}", "kept.vtc"));
+    assert_eq!(std::fs::read(&cache).unwrap(), kept);
     let (a, b) = (dir.path().join("a.exr"), dir.path().join("b.exr"));
     assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
     // Other bake options: baked afresh, the cache rewritten.
-    run("c.exr", "0.5");
-    assert_ne!(
-        std::fs::metadata(&cache).unwrap().modified().unwrap(),
-        first
-    );
+    let (baked, _) = run("c.exr", "0.5");
+    assert!(baked);
+    assert_ne!(std::fs::read(&cache).unwrap(), kept);
     // A cache in an older format (the version follows the 12-byte magic) is stale, not damaged:
     // baked afresh and rewritten in the current format, equal to a fresh bake.
     let mut bytes = std::fs::read(&cache).unwrap();
     let current = bytes[12..16].to_vec();
     bytes[12..16].copy_from_slice(&1u32.to_le_bytes());
     std::fs::write(&cache, &bytes).unwrap();
-    run("d.exr", "0.5");
+    let (baked, _) = run("d.exr", "0.5");
+    assert!(baked);
     assert_eq!(std::fs::read(&cache).unwrap()[12..16], current[..]);
     let (c, d) = (dir.path().join("c.exr"), dir.path().join("d.exr"));
     assert_eq!(std::fs::read(c).unwrap(), std::fs::read(d).unwrap());

@@ -11,7 +11,8 @@ mod tree;
 
 use std::path::{Path, PathBuf};
 
-use codec::{Scalar, ValueFormat, ACTIVE_MASK, BLOSC, ZIP};
+pub use codec::Scalar;
+use codec::{ValueFormat, ACTIVE_MASK, BLOSC, ZIP};
 use cursor::Cursor;
 
 use crate::error::{Error, Result};
@@ -47,21 +48,9 @@ const NAME_SEPARATOR: char = '\u{1e}';
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ValueKind {
     /// A tree this reader decodes (scalars as themselves, vectors as their length).
-    Readable {
-        scalar: ScalarKind,
-        components: usize,
-    },
+    Readable { scalar: Scalar, components: usize },
     /// A tree it lists but does not decode (bool/mask leaves hold bits, points need multi-pass).
     Unsupported,
-}
-
-/// Public face of the element type.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ScalarKind {
-    F32,
-    F64,
-    I32,
-    I64,
 }
 
 /// One grid as the file's descriptor and body header describe it.
@@ -279,12 +268,7 @@ impl VdbFile {
 fn value_format(g: &GridInfo) -> std::result::Result<ValueFormat, VdbError> {
     match g.kind {
         ValueKind::Readable { scalar, components } => Ok(ValueFormat {
-            scalar: match scalar {
-                ScalarKind::F32 => Scalar::F32,
-                ScalarKind::F64 => Scalar::F64,
-                ScalarKind::I32 => Scalar::I32,
-                ScalarKind::I64 => Scalar::I64,
-            },
+            scalar,
             components,
             half: g.half,
             flags: g.compression,
@@ -306,13 +290,13 @@ fn value_kind(grid_type: &str) -> (String, ValueKind) {
     };
     let readable = |scalar, components| ValueKind::Readable { scalar, components };
     let kind = match value {
-        "float" => readable(ScalarKind::F32, 1),
-        "double" => readable(ScalarKind::F64, 1),
-        "int32" => readable(ScalarKind::I32, 1),
-        "int64" => readable(ScalarKind::I64, 1),
-        "vec3s" => readable(ScalarKind::F32, 3),
-        "vec3d" => readable(ScalarKind::F64, 3),
-        "vec3i" => readable(ScalarKind::I32, 3),
+        "float" => readable(Scalar::F32, 1),
+        "double" => readable(Scalar::F64, 1),
+        "int32" => readable(Scalar::I32, 1),
+        "int64" => readable(Scalar::I64, 1),
+        "vec3s" => readable(Scalar::F32, 3),
+        "vec3d" => readable(Scalar::F64, 3),
+        "vec3i" => readable(Scalar::I32, 3),
         _ => ValueKind::Unsupported,
     };
     (value.to_string(), kind)
