@@ -42,7 +42,8 @@ pub fn temp_path(path: &Path) -> Result<PathBuf> {
 /// a new file (tried with the temporary name the write will use, then removed again).
 pub fn check_writable(path: &Path) -> Result<()> {
     let tmp = temp_path(path)?;
-    File::create(&tmp).map_err(|e| Error::io(path, e))?;
+    File::create(&tmp)
+        .map_err(|e| Error::Runtime(format!("{}: cannot be written ({e})", path.display())))?;
     let _ = fs::remove_file(&tmp);
     Ok(())
 }

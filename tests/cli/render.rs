@@ -319,3 +319,60 @@ fn relight_from_a_cache_equals_a_fresh_bake_bit_for_bit() {
     assert_eq!(read("relit.exr"), read("fresh.exr"));
     assert_ne!(read("relit.exr"), read("sky.exr"));
 }
+
+#[test]
+fn an_unwritable_output_fails_before_any_bake() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("cloud.vdb");
+    let missing = dir.path().join("no/such/dir/x.png");
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            input.to_str().unwrap(),
+            "-o",
+            missing.to_str().unwrap(),
+            "--cache",
+            "kept.vtc",
+            "--stats",
+        ],
+    );
+    assert_clean_failure(&o, 1, "x.png: cannot be written");
+    // Nothing was baked: no cache, no statistics.
+    assert!(!dir.path().join("kept.vtc").exists());
+    assert!(o.stdout.is_empty());
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "bake",
+            input.to_str().unwrap(),
+            "-o",
+            missing.to_str().unwrap(),
+        ],
+    );
+    assert_clean_failure(&o, 1, "cannot be written");
+}
+
+#[test]
+fn a_volume_without_density_renders_the_environment_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("empty.vdb");
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            input.to_str().unwrap(),
+            "-o",
+            "e.png",
+            "--res",
+            "32x18",
+            "--quiet",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        stderr(&o).trim_end(),
+        "vscatter: warning: the volume has no positive density: the picture shows only the environment"
+    );
+    assert!(dir.path().join("e.png").exists());
+}
