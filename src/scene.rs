@@ -145,9 +145,10 @@ impl Scene {
             .collect()
     }
 
-    /// The camera of `spec` for this volume (framing it when `spec` has no position).
+    /// The camera of `spec` for this volume: framing where the density is when `spec` has no
+    /// position ([`render::framing_bounds`]).
     pub fn camera(&self, spec: &CameraSpec) -> Result<Camera> {
-        spec.camera(render::world_bounds(&self.field.grid))
+        spec.camera(render::framing_bounds(&self.field.grid))
     }
 
     /// Relights the transfer under `lighting` and marches it as `camera` sees it, with the

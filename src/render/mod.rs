@@ -56,9 +56,22 @@ impl CameraSpec {
     }
 }
 
-/// World-space box of the active voxels' centres (any sign of scale), `None` when nothing is active.
-pub fn world_bounds(grid: &SparseGrid) -> Option<(Vec3, Vec3)> {
-    let (lo, hi) = grid.active_bbox()?;
+/// Voxels whose density is below this fraction of the grid's maximum do not count when a camera
+/// frames the volume: simulation caches carry wide active regions of near-zero density (a real
+/// smoke frame whose visible smoke is a tenth of its active box was framed as a 60-pixel blob at
+/// 1280×720), and 2 % of the peak keeps the faint edges a viewer can still see in the frame.
+pub const FRAMING_DENSITY_FRACTION: f32 = 0.02;
+
+/// World-space box of the voxel centres a camera should frame (any sign of scale): those with at
+/// least [`FRAMING_DENSITY_FRACTION`] of the maximum density, or every active voxel when none is
+/// positive; `None` when nothing is active.
+pub fn framing_bounds(grid: &SparseGrid) -> Option<(Vec3, Vec3)> {
+    let max = grid.value_stats()?.max;
+    let (lo, hi) = if max > 0.0 {
+        grid.bbox_above(FRAMING_DENSITY_FRACTION * max)?
+    } else {
+        grid.active_bbox()?
+    };
     let a = grid.transform.index_to_world(lo.as_dvec3());
     let b = grid.transform.index_to_world(hi.as_dvec3());
     let (a, b): (DVec3, DVec3) = (a.min(b), a.max(b));
@@ -171,7 +184,7 @@ mod tests {
     }
 
     #[test]
-    fn world_bounds_handle_negative_scale() {
+    fn framing_bounds_handle_negative_scale() {
         let mut g = SparseGrid::new(
             Transform {
                 scale: DVec3::new(0.5, -1.0, 2.0),
@@ -179,11 +192,28 @@ mod tests {
             },
             0.0,
         );
-        assert_eq!(world_bounds(&g), None);
+        assert_eq!(framing_bounds(&g), None);
         g.insert_tile(TileLevel::Block, IVec3::ZERO, 1.0);
-        let (lo, hi) = world_bounds(&g).unwrap();
+        let (lo, hi) = framing_bounds(&g).unwrap();
         assert_eq!(lo, Vec3::new(1.0, -7.0, 0.0));
         assert_eq!(hi, Vec3::new(4.5, 0.0, 14.0));
+    }
+
+    #[test]
+    fn framing_follows_the_density_not_faint_active_voxels() {
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        // A wide node tile of faint noise (1 % of the peak) around a dense 8³ block.
+        g.insert_tile(TileLevel::Node, IVec3::new(-128, 0, 0), 0.01);
+        g.insert_tile(TileLevel::Block, IVec3::new(16, 8, 0), 1.0);
+        let (lo, hi) = framing_bounds(&g).unwrap();
+        assert_eq!(
+            (lo, hi),
+            (Vec3::new(16.0, 8.0, 0.0), Vec3::new(23.0, 15.0, 7.0))
+        );
+        // With nothing positive the active box is framed.
+        let mut zero = SparseGrid::new(Transform::default(), 0.0);
+        zero.insert_tile(TileLevel::Block, IVec3::ZERO, 0.0);
+        assert_eq!(framing_bounds(&zero), Some((Vec3::ZERO, Vec3::splat(7.0))));
     }
 
     #[test]

@@ -251,11 +251,21 @@ impl SparseGrid {
 
     /// Inclusive index bounding box of the active voxels and tiles; `None` when nothing is active.
     pub fn active_bbox(&self) -> Option<(IVec3, IVec3)> {
+        self.bbox_where(|_| true)
+    }
+
+    /// Inclusive index bounding box of the active voxels and tiles whose value is at least
+    /// `threshold`; `None` when there are none.
+    pub fn bbox_above(&self, threshold: f32) -> Option<(IVec3, IVec3)> {
+        self.bbox_where(|v| v >= threshold)
+    }
+
+    fn bbox_where(&self, keep: impl Fn(f32) -> bool) -> Option<(IVec3, IVec3)> {
         let mut lo = IVec3::MAX;
         let mut hi = IVec3::MIN;
         for leaf in &self.leaves {
             for slot in 0..LEAF_VOXELS {
-                if leaf.is_active(slot) {
+                if leaf.is_active(slot) && keep(leaf.values[slot]) {
                     let p = leaf.origin + slot_offset(slot);
                     lo = lo.min(p);
                     hi = hi.max(p);
@@ -263,7 +273,7 @@ impl SparseGrid {
             }
         }
         for level in TileLevel::ALL {
-            for (origin, _) in self.tiles(level) {
+            for (origin, _) in self.tiles(level).filter(|(_, v)| keep(*v)) {
                 lo = lo.min(origin);
                 // Root tiles reach 4095 past their origin; saturate at the edge of i32 space.
                 let far = (origin.as_i64vec3() + glam::I64Vec3::splat(level.dim() - 1))

@@ -376,3 +376,46 @@ fn a_volume_without_density_renders_the_environment_with_a_warning() {
     );
     assert!(dir.path().join("e.png").exists());
 }
+
+#[test]
+fn automatic_framing_fills_the_frame_with_the_smoke() {
+    // The real smoke frame's active box is mostly near-zero density; framed on the density, the
+    // visible smoke covers a good part of the picture rather than a blob in its middle.
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("smoke_double_openvdb7.vdb");
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            input.to_str().unwrap(),
+            "-o",
+            "s.exr",
+            "--res",
+            "64x36",
+            "--no-background",
+            "--sigma-t",
+            "0.2",
+            "--samples",
+            "16",
+            "--bands",
+            "2",
+            "--quiet",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let img = exr::prelude::read_first_rgba_layer_from_file(
+        dir.path().join("s.exr"),
+        |res, _| vec![0f32; res.width() * res.height()],
+        |alpha: &mut Vec<f32>, pos, (_, _, _, a): (f32, f32, f32, f32)| {
+            alpha[pos.y() * 64 + pos.x()] = a
+        },
+    )
+    .unwrap();
+    let alpha = &img.layer_data.channel_data.pixels;
+    let covered = alpha.iter().filter(|a| **a > 0.01).count();
+    assert!(
+        covered * 4 > alpha.len(),
+        "the smoke covers {covered} of {} pixels",
+        alpha.len()
+    );
+}
