@@ -6,7 +6,7 @@ use std::time::Instant;
 use vscatter::light::env::Environment;
 use vscatter::light::sh;
 
-/// 4k latlong: the common size of production HDRIs (DESIGN target: well under a second at 10 bands).
+/// 4k latlong: the common size of production HDRIs (target: well under a second at 10 bands).
 const WIDTH: usize = 4096;
 const HEIGHT: usize = 2048;
 /// Best of a few runs: the machine is shared, so the minimum is the least disturbed figure.

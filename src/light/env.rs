@@ -1,4 +1,4 @@
-//! Environment maps (DESIGN.md "Environment"): latitude–longitude radiance images read from OpenEXR
+//! Environment maps (docs/model.md, "Environment maps"): latitude–longitude radiance images read from OpenEXR
 //! or Radiance `.hdr`, or the built-in procedural sky; bilinear lookup by direction; projection onto
 //! SH by the deterministic pixel quadrature of [`crate::light::sh`].
 
@@ -240,7 +240,7 @@ impl Environment {
     }
 }
 
-/// Latlong (u, v) ∈ [0,1)×[0,1] of a unit direction: θ = acos(y), φ = atan2(x, −z) (DESIGN.md).
+/// Latlong (u, v) ∈ [0,1)×[0,1] of a unit direction: θ = acos(y), φ = atan2(x, −z) (docs/model.md).
 pub fn dir_to_uv(dir: [f64; 3]) -> (f64, f64) {
     // The angles in f32: within a few 1e-7 rad of the f64 ones (a thousandth of a pixel of a
     // 4096-wide map), and glibc's f32 atan2 and acos cost a fraction of the f64 ones; every

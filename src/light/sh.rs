@@ -2,7 +2,7 @@
 //! pixel quadrature that projects a latitude–longitude map onto it, reconstruction, windowing
 //! (thesis eq. 6.1) and rotation about +Y.
 //!
-//! Conventions (DESIGN.md): index i = l(l+1)+m, 0-based; polar axis **+Y**, θ measured from +Y, φ as in
+//! Conventions (docs/model.md): index i = l(l+1)+m, 0-based; polar axis **+Y**, θ measured from +Y, φ as in
 //! the latlong mapping, so a direction is ω = (sinθ·sinφ, cosθ, −sinθ·cosφ). The real basis is
 //!
 //! ```text

@@ -1,4 +1,4 @@
-//! The pinhole camera (DESIGN.md "Camera"): position, look-at point, up vector, **horizontal**
+//! The pinhole camera (docs/model.md, "The camera"): position, look-at point, up vector, **horizontal**
 //! field of view, image row 0 at the top; the automatic framing used when the user gives no camera;
 //! and the deterministic per-pixel sample positions of `--spp`.
 

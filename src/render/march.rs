@@ -507,7 +507,7 @@ mod tests {
 
     #[test]
     fn pure_absorber_is_transmittance_times_background() {
-        // Albedo 0 ⇒ L = Tr·E exactly (DESIGN fact 2). A 128³ tile of density 1: its trilinear
+        // Albedo 0 ⇒ L = Tr·E exactly (docs/model.md, "Facts the tests check"). A 128³ tile of density 1: its trilinear
         // density is 1 on [0, 127]³ and falls linearly to 0 over one voxel outside. Along a ray
         // that crosses each ramp through a face (the other two coordinates on the plateau), ρ
         // rises linearly over the ramp and ∫ramp = ½·(ramp chord), which is the chord from the

@@ -1,4 +1,4 @@
-//! Relighting: the per-transfer-voxel in-scattered radiance Ls = (1/4π) Σᵢ Tᵢ Eᵢ (DESIGN.md
+//! Relighting: the per-transfer-voxel in-scattered radiance Ls = (1/4π) Σᵢ Tᵢ Eᵢ (docs/model.md
 //! "Pixel radiance"), for the unscattered part T_ri ("direct") and the multiply scattered part F_ms
 //! ("indirect") separately, so the renderer can write them as their own EXR layers. This is the
 //! step that makes a new environment cost milliseconds: a dot product per voxel and channel.

@@ -2,7 +2,7 @@
 //! expanded voxel by voxel), keyed in `hashbrown` maps, with the index↔world transform, trilinear
 //! sampling, the active bounding box, per-block maxima and a coarse occupancy level for skipping.
 //!
-//! Conventions (DESIGN.md): voxel (i,j,k) holds its value at index point (i,j,k); between centres the
+//! Conventions (docs/model.md): voxel (i,j,k) holds its value at index point (i,j,k); between centres the
 //! density is trilinear; inactive voxels and everything outside the tree take the background value.
 
 use glam::{DVec3, IVec3, Vec3};

@@ -1,4 +1,4 @@
-//! Compressed value blocks (VDB-FORMAT §10–11): the meta byte and mask compression, and the array
+//! Compressed value blocks (docs/vdb-format.md, "Value blocks", "Array framing"): the meta byte and mask compression, and the array
 //! framing — raw, zlib, or Blosc/LZ4 — decoded with every size checked against what the node can
 //! hold *before* anything is allocated or inflated, so no forged header can make a decoder read or
 //! write out of bounds or grow past the node's size.

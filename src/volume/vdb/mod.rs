@@ -1,4 +1,4 @@
-//! The project's own OpenVDB reader (file format 222–224, VDB-FORMAT.md): archive header,
+//! The project's own OpenVDB reader (file format 222–224, docs/vdb-format.md): archive header,
 //! metadata, grid descriptors, grid bodies — decoding float, half, double, integer and vector trees
 //! straight into a [`SparseGrid`]. Everything read from the file is checked against what remains
 //! of it before it is used, so a damaged or forged file is a clear error, never a panic or an

@@ -1,4 +1,4 @@
-//! Grid transforms (VDB-FORMAT §7): the scale/translate family is read into a [`Transform`];
+//! Grid transforms (docs/vdb-format.md, "Transforms"): the scale/translate family is read into a [`Transform`];
 //! rotations, shears, frustums and unknown maps are refused with their name.
 
 use glam::DVec3;

@@ -1,4 +1,4 @@
-//! The tree of one grid (VDB-FORMAT §8–9): root tiles and children, internal-5 and internal-4 nodes
+//! The tree of one grid (docs/vdb-format.md, "Tree topology"): root tiles and children, internal-5 and internal-4 nodes
 //! with their tiles, then the leaf buffers — read straight into a [`SparseGrid`]. Node counts are
 //! checked against the bytes that remain before anything is allocated for them; leaf values are
 //! decoded in parallel once the buffer section's layout is known.
