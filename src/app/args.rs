@@ -5,7 +5,9 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
+use glam::Vec3;
 use vscatter::error::{Error, Result};
+use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
 use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
 
@@ -298,6 +300,83 @@ pub struct RenderArgs {
     pub cache: Option<PathBuf>,
     #[command(flatten)]
     pub bake: BakeArgs,
+}
+
+/// Most samples per pixel accepted: beyond this a box filter has long converged.
+const MAX_SPP: u32 = 65536;
+/// Default samples per pixel of the transfer method: its march is smooth, one ray per pixel is a
+/// clean image; more only antialias edges.
+const DEFAULT_SPP: u32 = 1;
+/// Default samples per pixel of the path tracer: enough for a recognisable preview of a cloud
+/// (a few percent noise on its bright side); references take thousands.
+const DEFAULT_PATHTRACE_SPP: u32 = 64;
+
+impl RenderArgs {
+    /// Checks the flags that depend on each other or on the method (the bake flags are checked
+    /// by [`BakeArgs::validate`]); returns the samples per pixel and the camera.
+    pub fn validate(&self) -> Result<(u32, CameraSpec)> {
+        let args = self;
+        let ext = args
+            .output
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase());
+        if !matches!(ext.as_deref(), Some("exr" | "png")) {
+            return Err(Error::usage(format!(
+                "{}: output must end in .exr or .png",
+                args.output.display()
+            )));
+        }
+        let spp = args.spp.unwrap_or(match args.method {
+            Method::Transfer => DEFAULT_SPP,
+            Method::Pathtrace => DEFAULT_PATHTRACE_SPP,
+        });
+        if !(1..=MAX_SPP).contains(&spp) {
+            return Err(Error::usage(format!(
+                "--spp {spp}: must lie in 1..={MAX_SPP}"
+            )));
+        }
+        if !(args.env_scale.is_finite() && args.env_scale >= 0.0) {
+            return Err(Error::usage(format!(
+                "--env-scale {}: must be a finite number ≥ 0",
+                args.env_scale
+            )));
+        }
+        if !args.env_rotate.is_finite() || !args.png.exposure.is_finite() {
+            return Err(Error::usage(
+                "--env-rotate and --exposure must be finite numbers",
+            ));
+        }
+        // Flags that mean nothing to the chosen method are refused, naming the one that does the job.
+        let refusal = match args.method {
+        Method::Transfer if args.max_bounces.is_some() => Some(
+            "--max-bounces applies to --method pathtrace; the transfer's single scattering is --single-scatter",
+        ),
+        Method::Pathtrace if args.bake.single_scatter => Some(
+            "--single-scatter applies to the transfer; the path tracer's single scattering is --max-bounces 1",
+        ),
+        Method::Pathtrace if args.cache.is_some() => {
+            Some("--cache keeps a bake, and --method pathtrace bakes nothing")
+        }
+        Method::Pathtrace if args.max_bounces == Some(0) => {
+            Some("--max-bounces 0: must be at least 1 (1 = single scattering)")
+        }
+        _ => None,
+    };
+        if let Some(r) = refusal {
+            return Err(Error::usage(r));
+        }
+        let spec = CameraSpec {
+            position: args.camera_pos.map(Vec3::from),
+            lookat: args.lookat.map(Vec3::from),
+            up: Vec3::from(args.up),
+            fov_deg: args.fov,
+            width: args.res.0,
+            height: args.res.1,
+        };
+        // Resolution, fov and pose: a framing camera of a unit box.
+        spec.camera(None)?;
+        Ok((spp, spec))
+    }
 }
 
 /// `vscatter compare IMAGE.exr REFERENCE.exr`.

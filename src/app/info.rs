@@ -7,8 +7,7 @@ use serde_json::{json, Value};
 
 use super::args::InfoArgs;
 use vscatter::error::{Error, Result};
-use vscatter::volume::vdb::{GridInfo, ValueKind, VdbFile};
-use vscatter::volume::SparseGrid;
+use vscatter::volume::vdb::{ValueKind, VdbFile};
 
 /// Runs `vscatter info`: a `.vtc` cache (recognised by its magic) or a VDB file.
 pub fn run(args: &InfoArgs) -> Result<()> {
@@ -27,7 +26,7 @@ pub fn run(args: &InfoArgs) -> Result<()> {
             ValueKind::Readable { .. } => Some(vdb.read_grid(i)?),
             ValueKind::Unsupported => None,
         };
-        grids.push(grid_json(g, tree.as_ref()));
+        grids.push(g.describe(tree.as_ref()));
     }
     let report = json!({
         "file": args.file.display().to_string(),
@@ -46,8 +45,8 @@ pub fn run(args: &InfoArgs) -> Result<()> {
         .map_err(|e| Error::io("<stdout>", e))
 }
 
-/// Describes a transfer cache: its header, checked against the file's size (not its checksum,
-/// so `info` stays instant on big caches).
+/// Describes a transfer cache: its header, once the whole file's checksum has been verified (a
+/// damaged cache is reported as damaged, not described).
 fn cache_info(args: &InfoArgs) -> Result<()> {
     let h = vscatter::transfer::cache::verify(&args.file)?;
     let size = std::fs::metadata(&args.file)
@@ -60,77 +59,12 @@ fn cache_info(args: &InfoArgs) -> Result<()> {
         v["format_version"] = json!(vscatter::transfer::cache::VERSION);
         format!("{v:#}\n")
     } else {
-        format!(
-            "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients\n",
-            args.file.display(),
-            vscatter::transfer::cache::VERSION,
-            indicatif::HumanBytes(size),
-            h.source.name,
-            h.source.grid,
-            h.source.size,
-            h.sigma_t,
-            h.albedo,
-            h.bands,
-            h.scale,
-            h.samples,
-            h.lattice,
-            if h.single_scatter { " (single scattering only)" } else { "" },
-            h.seed,
-            h.voxel_scale,
-            h.translation,
-            h.leaves,
-            h.tiles,
-            h.transfer_voxels,
-            h.coefficients,
-        )
+        h.describe(&args.file, size)
     };
     std::io::stdout()
         .lock()
         .write_all(text.as_bytes())
         .map_err(|e| Error::io("<stdout>", e))
-}
-
-fn grid_json(g: &GridInfo, tree: Option<&SparseGrid>) -> Value {
-    let t = &g.transform;
-    let mut v = json!({
-        "name": g.name,
-        "value_type": g.value_type,
-        "grid_type": g.grid_type,
-        "half": g.half,
-        "class": g.class,
-        "instance_of": g.instance_of,
-        "compression": g.compression_name(),
-        "map_type": g.map_type,
-        "voxel_size": t.voxel_size().to_array(),
-        "scale": t.scale.to_array(),
-        "translation": t.translation.to_array(),
-    });
-    let Some(tree) = tree else {
-        v["note"] = json!("not read: this value type is not a volume");
-        return v;
-    };
-    let bbox = tree.active_bbox();
-    let stats = tree.value_stats();
-    // Vectors are read as their length: a range of lengths is meaningful, a sum is not.
-    let scalar = g.is_scalar();
-    let extra = json!({
-        "active_voxels": tree.active_voxels(),
-        "tiles": tree.tile_count(),
-        "leaves": tree.leaf_count(),
-        "bbox_min": bbox.map(|b| b.0.to_array()),
-        "bbox_max": bbox.map(|b| b.1.to_array()),
-        "background": tree.background,
-        "value_min": stats.map(|s| s.min),
-        "value_max": stats.map(|s| s.max),
-        "value_sum": stats.filter(|_| scalar).map(|s| s.sum),
-        "value_range_of": if scalar { "values" } else { "vector lengths" },
-        "memory_bytes": tree.memory_bytes(),
-        "file_voxel_count": g.file_voxel_count,
-    });
-    if let (Value::Object(a), Value::Object(b)) = (&mut v, extra) {
-        a.extend(b);
-    }
-    v
 }
 
 fn vec3(v: &Value) -> String {

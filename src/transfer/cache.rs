@@ -97,6 +97,34 @@ pub struct Cache {
 }
 
 impl Header {
+    /// The cache at `path` (`size` bytes) described for people, one aspect a line.
+    pub fn describe(&self, path: &Path, size: u64) -> String {
+        let h = self;
+        format!(
+        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients\n",
+        path.display(),
+        VERSION,
+        indicatif::HumanBytes(size),
+        h.source.name,
+        h.source.grid,
+        h.source.size,
+        h.sigma_t,
+        h.albedo,
+        h.bands,
+        h.scale,
+        h.samples,
+        h.lattice,
+        if h.single_scatter { " (single scattering only)" } else { "" },
+        h.seed,
+        h.voxel_scale,
+        h.translation,
+        h.leaves,
+        h.tiles,
+        h.transfer_voxels,
+        h.coefficients,
+    )
+    }
+
     fn coefficient_bytes(&self) -> Option<u64> {
         match self.coefficients.as_str() {
             "f32" => Some(4),

@@ -11,6 +11,8 @@ mod tree;
 
 use std::path::{Path, PathBuf};
 
+use serde_json::{json, Value};
+
 pub use codec::Scalar;
 use codec::{ValueFormat, ACTIVE_MASK, BLOSC, ZIP};
 use cursor::Cursor;
@@ -83,6 +85,52 @@ pub struct GridInfo {
 }
 
 impl GridInfo {
+    /// What `vdb_print -l` tells about this grid, as JSON; `tree` is its decoded tree (`None`
+    /// when its value type is not a volume).
+    pub fn describe(&self, tree: Option<&SparseGrid>) -> Value {
+        let g = self;
+        let t = &g.transform;
+        let mut v = json!({
+            "name": g.name,
+            "value_type": g.value_type,
+            "grid_type": g.grid_type,
+            "half": g.half,
+            "class": g.class,
+            "instance_of": g.instance_of,
+            "compression": g.compression_name(),
+            "map_type": g.map_type,
+            "voxel_size": t.voxel_size().to_array(),
+            "scale": t.scale.to_array(),
+            "translation": t.translation.to_array(),
+        });
+        let Some(tree) = tree else {
+            v["note"] = json!("not read: this value type is not a volume");
+            return v;
+        };
+        let bbox = tree.active_bbox();
+        let stats = tree.value_stats();
+        // Vectors are read as their length: a range of lengths is meaningful, a sum is not.
+        let scalar = g.is_scalar();
+        let extra = json!({
+            "active_voxels": tree.active_voxels(),
+            "tiles": tree.tile_count(),
+            "leaves": tree.leaf_count(),
+            "bbox_min": bbox.map(|b| b.0.to_array()),
+            "bbox_max": bbox.map(|b| b.1.to_array()),
+            "background": tree.background,
+            "value_min": stats.map(|s| s.min),
+            "value_max": stats.map(|s| s.max),
+            "value_sum": stats.filter(|_| scalar).map(|s| s.sum),
+            "value_range_of": if scalar { "values" } else { "vector lengths" },
+            "memory_bytes": tree.memory_bytes(),
+            "file_voxel_count": g.file_voxel_count,
+        });
+        if let (Value::Object(a), Value::Object(b)) = (&mut v, extra) {
+            a.extend(b);
+        }
+        v
+    }
+
     pub fn is_scalar(&self) -> bool {
         matches!(self.kind, ValueKind::Readable { components: 1, .. })
     }

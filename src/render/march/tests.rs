@@ -1,0 +1,450 @@
+//! Tests of `march`.
+
+use super::*;
+use crate::math::ray::Ray;
+use crate::volume::grid::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
+use crate::volume::{SparseGrid, Transform};
+use glam::IVec3;
+
+/// A test source given by its value at a point, summed step by step.
+struct Pointwise<F>(F);
+
+impl<F: Fn(Vec3) -> [[f32; 3]; 2] + Sync> InScatter for Pointwise<F> {
+    type Sum = [[f32; 3]; 2];
+    fn add(&self, p: Vec3, c: f32, sum: &mut Self::Sum) {
+        let ls = (self.0)(p);
+        for part in 0..2 {
+            for ch in 0..3 {
+                sum[part][ch] += c * ls[part][ch];
+            }
+        }
+    }
+    fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2] {
+        sum
+    }
+}
+
+/// Ls the same everywhere.
+fn uniform(ls: [[f32; 3]; 2]) -> Pointwise<impl Fn(Vec3) -> [[f32; 3]; 2] + Sync> {
+    Pointwise(move |_| ls)
+}
+
+/// Ls varying smoothly with position, so misplaced steps would show.
+fn smooth() -> Pointwise<impl Fn(Vec3) -> [[f32; 3]; 2] + Sync> {
+    Pointwise(|p: Vec3| {
+        let s = (p * 0.1).to_array().map(f32::sin);
+        [
+            [1.0 + s[0], 1.0 + s[1], 1.0 + s[2]],
+            [0.5 + 0.3 * s[1], 0.2, 0.1],
+        ]
+    })
+}
+
+fn medium(sigma_t: f32, albedo: f32) -> Medium {
+    Medium { sigma_t, albedo }
+}
+
+/// Per-axis voxel sizes and an offset, so world↔index conversions are exercised.
+fn anisotropic() -> Transform {
+    Transform {
+        scale: DVec3::new(0.01, 0.012, 0.008),
+        translation: DVec3::new(1.0, -2.0, 0.5),
+    }
+}
+
+fn world_box(g: &SparseGrid, lo: f64, hi: f64) -> (Vec3, Vec3) {
+    let a = g.transform.index_to_world(DVec3::splat(lo)).as_vec3();
+    let b = g.transform.index_to_world(DVec3::splat(hi)).as_vec3();
+    (a.min(b), a.max(b))
+}
+
+fn cameras(g: &SparseGrid, w: u32, h: u32) -> Vec<Camera> {
+    let (lo, hi) = world_box(g, 0.0, 127.0);
+    let c = 0.5 * (lo + hi);
+    vec![
+        Camera::framing(lo, hi, w, h, 45.0).unwrap(),
+        Camera::look_at(
+            c + Vec3::new(2.0, 1.4, 1.7),
+            c + Vec3::new(0.05, -0.02, 0.0),
+            Vec3::Y,
+            38.0,
+            w,
+            h,
+        )
+        .unwrap(),
+    ]
+}
+
+fn unit_tile(transform: Transform, value: f32) -> SparseGrid {
+    let mut g = SparseGrid::new(transform, 0.0);
+    g.insert_tile(TileLevel::Node, IVec3::ZERO, value);
+    g
+}
+
+#[test]
+fn zero_density_shows_the_background_exactly() {
+    let constant = |_: Vec3| [0.3f32, 0.6, 1.2];
+    let directional = |d: Vec3| [d.x + 1.0, 2.0 * d.y + 3.0, d.z.abs()];
+    let backgrounds: [Background; 2] = [&constant, &directional];
+    // Active but zero: a node tile and a leaf; and a grid with nothing active at all.
+    let mut zeros = unit_tile(anisotropic(), 0.0);
+    let mut mask = [u64::MAX; 8];
+    mask[3] = 0;
+    zeros.insert_leaf(IVec3::new(128, 0, 0), mask, [0.0; LEAF_VOXELS]);
+    let empty = SparseGrid::new(anisotropic(), 0.0);
+    for g in [&zeros, &empty] {
+        let field = DensityField::new(g.clone());
+        let source = uniform([[5.0; 3]; 2]);
+        for bg in backgrounds {
+            let scene = Scene::new(&field, medium(3.0, 0.9), &source, Some(bg));
+            for skip_empty in [true, false] {
+                let settings = MarchSettings {
+                    skip_empty,
+                    ..MarchSettings::default()
+                };
+                for cam in cameras(&zeros, 24, 16) {
+                    let (frame, _) = render(&scene, &cam, &settings, &ProgressBar::hidden());
+                    for (i, px) in frame.rgba.iter().enumerate() {
+                        let (x, y) = (i as u32 % 24, i as u32 / 24);
+                        let (_, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
+                        let e = bg(dir);
+                        assert_eq!(*px, [e[0], e[1], e[2], 1.0]);
+                        assert_eq!(frame.direct[i], [0.0; 3]);
+                        assert_eq!(frame.depth[i], 0.0);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// 1D profile of the trilinear density of voxels [0, 127] = 1 along one axis: a linear ramp
+/// over one voxel on each side.
+fn profile(x: f64) -> f64 {
+    (x + 1.0).min(128.0 - x).clamp(0.0, 1.0)
+}
+
+/// ∫ ρ ds along the world ray, exactly: ρ is the product of the three axis profiles, a cubic
+/// between the t where any coordinate crosses −1, 0, 127 or 128, so two-point Gauss–Legendre
+/// per piece is exact. Also says whether the ray is "face only": wherever ρ > 0, at most one
+/// axis is on its ramp.
+fn exact_integral(g: &SparseGrid, origin: Vec3, dir: Vec3) -> (f64, bool) {
+    let Ray {
+        origin: o, dir: d, ..
+    } = g.transform.ray_to_index(origin, dir);
+    let mut ts = vec![0.0];
+    for a in 0..3 {
+        for c in [-1.0, 0.0, 127.0, 128.0] {
+            if d[a] != 0.0 && (c - o[a]) / d[a] > 0.0 {
+                ts.push((c - o[a]) / d[a]);
+            }
+        }
+    }
+    ts.sort_by(f64::total_cmp);
+    let rho = |t: f64| {
+        let p = o + d * t;
+        profile(p.x) * profile(p.y) * profile(p.z)
+    };
+    let gl = 0.5 / 3f64.sqrt();
+    let (mut sum, mut face_only) = (0.0, true);
+    for w in ts.windows(2) {
+        let (a, b) = (w[0], w[1]);
+        let m = 0.5 * (a + b);
+        sum += 0.5 * (b - a) * (rho(m - gl * (b - a)) + rho(m + gl * (b - a)));
+        let p = o + d * m;
+        let ramps = (0..3).filter(|&i| p[i] < 0.0 || p[i] > 127.0).count();
+        if rho(m) > 0.0 && ramps > 1 {
+            face_only = false;
+        }
+    }
+    (sum, face_only)
+}
+
+#[test]
+fn pure_absorber_is_transmittance_times_background() {
+    // Albedo 0 ⇒ L = Tr·E exactly (docs/model.md, "Facts the tests check"). A 128³ tile of density 1: its trilinear
+    // density is 1 on [0, 127]³ and falls linearly to 0 over one voxel outside. Along a ray
+    // that crosses each ramp through a face (the other two coordinates on the plateau), ρ
+    // rises linearly over the ramp and ∫ramp = ½·(ramp chord), which is the chord from the
+    // ramp's midplane: so ∫ρ ds = the chord through the box [−0.5, 127.5]³ exactly. Rays
+    // through edges and corners multiply two or three ramps; for them the reference is the
+    // exact piecewise-cubic integral instead.
+    let g = unit_tile(anisotropic(), 1.0);
+    let field = DensityField::new(g.clone());
+    let sigma_t = 1.5f32; // longest chord ≈ 2.2 world units: optical depth ≤ 3.4 < 5
+    let source = uniform([[7.0; 3]; 2]);
+    let e = [1.0f32, 0.5, 2.0];
+    let bg = |_: Vec3| e;
+    let scene = Scene::new(&field, medium(sigma_t, 0.0), &source, Some(&bg));
+    let settings = MarchSettings {
+        step_voxels: 0.25,
+        ..MarchSettings::default()
+    };
+    let (w, h) = (48u32, 32u32);
+    let blo = g.transform.index_to_world(DVec3::splat(-0.5));
+    let bhi = g.transform.index_to_world(DVec3::splat(127.5));
+    let (mut face_rays, mut hits) = (0, 0);
+    for cam in cameras(&g, w, h) {
+        let (frame, _) = render(&scene, &cam, &settings, &ProgressBar::hidden());
+        for (i, px) in frame.rgba.iter().enumerate() {
+            let (x, y) = (i as u32 % w, i as u32 / w);
+            let (origin, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
+            let (integral, face_only) = exact_integral(&g, origin, dir);
+            if face_only {
+                // The analytic chord of the world box [−0.5, 127.5]³.
+                let chord = Ray::new(origin.as_dvec3(), dir.as_dvec3())
+                    .clip(0.0, f64::INFINITY, blo, bhi)
+                    .map_or(0.0, |(a, b)| b - a);
+                assert!((chord - integral).abs() < 1e-9, "{chord} vs {integral}");
+                face_rays += 1;
+            }
+            hits += (integral > 0.0) as u32;
+            let tr = (-(sigma_t as f64) * integral).exp();
+            for c in 0..3 {
+                let want = e[c] as f64 * tr;
+                let rel = (px[c] as f64 - want).abs() / want;
+                assert!(rel < 1e-3, "pixel ({x},{y}) {px:?}: want {want}");
+            }
+            assert_eq!(frame.direct[i], [0.0; 3]);
+            assert!((px[3] - 1.0).abs() < 1e-6);
+        }
+    }
+    // Most rays hit, and most of those cross faces only: the chord check is not vacuous.
+    assert!(hits > (w * h), "hits {hits}");
+    assert!(face_rays > (w * h) / 2, "face rays {face_rays}");
+}
+
+#[test]
+fn furnace_albedo_one_gives_the_background() {
+    // Albedo 1 with Ls = E = c everywhere: Σ Tr_k (1 − e^{−τ_k}) c + Tr c telescopes to c,
+    // early termination included (what is cut off is added back as Tr·E).
+    let g = unit_tile(anisotropic(), 1.0);
+    let field = DensityField::new(g.clone());
+    let c = [0.8f32, 1.0, 1.7];
+    let source = uniform([[c[0], c[1], 0.0], [0.0, 0.0, c[2]]]);
+    let bg = |_: Vec3| c;
+    for sigma_t in [0.5f32, 4.0, 200.0] {
+        let scene = Scene::new(&field, medium(sigma_t, 1.0), &source, Some(&bg));
+        for cam in cameras(&g, 16, 12) {
+            let (frame, _) = render(
+                &scene,
+                &cam,
+                &MarchSettings::default(),
+                &ProgressBar::hidden(),
+            );
+            for px in &frame.rgba {
+                for ch in 0..3 {
+                    assert!((px[ch] - c[ch]).abs() < 1e-5 * c[ch], "{px:?}");
+                }
+            }
+        }
+    }
+}
+
+/// A sparse, cloud-like grid: hashed leaf values, gaps between leaves, a node tile.
+fn lumpy() -> SparseGrid {
+    let mut g = SparseGrid::new(anisotropic(), 0.0);
+    g.insert_tile(TileLevel::Node, IVec3::new(128, 0, 0), 0.4);
+    g.insert_tile(TileLevel::Block, IVec3::new(40, 80, 40), 1.5);
+    add_hashed_leaves(&mut g, 60);
+    g
+}
+
+#[test]
+fn skipping_changes_nothing() {
+    let g = lumpy();
+    let field = DensityField::new(g.clone());
+    let directional = |d: Vec3| [d.x.abs(), 0.5 + d.y, 1.0 - d.z];
+    for (sigma_t, bg) in [(3.0f32, Some(&directional as Background)), (40.0, None)] {
+        let source = smooth();
+        let scene = Scene::new(&field, medium(sigma_t, 0.8), &source, bg);
+        let (lo, hi) = world_box(&g, 0.0, 256.0);
+        let cams = [
+            Camera::framing(lo, hi, 40, 30, 45.0).unwrap(),
+            Camera::look_at(hi * 1.3, 0.5 * (lo + hi), Vec3::Y, 30.0, 40, 30).unwrap(),
+        ];
+        for cam in cams {
+            let settings = MarchSettings {
+                spp: 2,
+                ..MarchSettings::default()
+            };
+            let plain = MarchSettings {
+                skip_empty: false,
+                ..settings
+            };
+            let (a, sa) = render(&scene, &cam, &settings, &ProgressBar::hidden());
+            let (b, sb) = render(&scene, &cam, &plain, &ProgressBar::hidden());
+            assert_eq!(a, b);
+            assert_eq!(sb.samples_skipped, 0);
+            assert_eq!(sa.samples_taken + sa.samples_skipped, sb.samples_taken);
+            assert!(sa.samples_skipped > sa.samples_taken / 10, "{sa:?}");
+            assert!(a.rgba.iter().any(|p| p[3] > 0.5));
+        }
+    }
+}
+
+#[test]
+fn no_background_is_premultiplied_with_alpha() {
+    let g = unit_tile(Transform::default(), 1.0);
+    let field = DensityField::new(g.clone());
+    let source = uniform([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
+    let scene = Scene::new(&field, medium(0.01, 0.5), &source, None);
+    let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 20, 45.0).unwrap();
+    let (frame, stats) = render(
+        &scene,
+        &cam,
+        &MarchSettings::default(),
+        &ProgressBar::hidden(),
+    );
+    assert_eq!(stats.rays, 400);
+    // The framing camera sees the tile fill most of the frame: the checks below run on them.
+    let covered = frame.rgba.iter().filter(|px| px[3] > 0.0).count();
+    assert!(covered > 200, "{covered} of 400 pixels see the tile");
+    for (i, px) in frame.rgba.iter().enumerate() {
+        let alpha = px[3];
+        if alpha == 0.0 {
+            assert_eq!(*px, [0.0; 4]);
+            continue;
+        }
+        // L = albedo·(1 − Tr)·Ls for a constant Ls: colour / alpha = albedo·Ls.
+        let want = [0.75f32, 1.25, 1.75];
+        for c in 0..3 {
+            assert!((px[c] / alpha - want[c]).abs() < 1e-4 * want[c]);
+            assert!((frame.direct[i][c] + frame.indirect[i][c] - px[c]).abs() < 1e-6);
+        }
+        // Depth lies inside the tile, seen from the camera.
+        let d = frame.depth[i];
+        assert!(
+            d > cam.position.z - 128.0 && d < cam.position.z + 1.0,
+            "{d}"
+        );
+    }
+}
+
+#[test]
+fn a_degenerate_step_ends_instead_of_hanging() {
+    let g = unit_tile(Transform::default(), 1.0);
+    let field = DensityField::new(g.clone());
+    let source = uniform([[1.0; 3]; 2]);
+    let scene = Scene::new(&field, medium(1.0, 0.5), &source, None);
+    let mut stats = MarchStats::default();
+    for step_voxels in [0.0, f32::NAN, -1.0] {
+        let settings = MarchSettings {
+            step_voxels,
+            ..MarchSettings::default()
+        };
+        let r = march_ray(
+            &scene,
+            Vec3::new(64.0, 64.0, 500.0),
+            -Vec3::Z,
+            0.5,
+            &settings,
+            &mut stats,
+        );
+        assert_eq!(r.transmittance, 1.0);
+    }
+    assert_eq!(stats.samples_taken, 0);
+}
+
+#[test]
+fn transfer_radiance_interpolates_slots() {
+    let g = unit_tile(Transform::default(), 1.0);
+    let layout = TransferLayout::build(&g, 6);
+    // Direct: red = the transfer voxel's x, green 1; one plane of voxels (x = 0) unlit.
+    let radiance = Radiance {
+        direct: layout
+            .voxels()
+            .iter()
+            .map(|v| {
+                if v.x == 0 {
+                    [0.0; 3]
+                } else {
+                    [v.x as f32, 1.0, 0.0]
+                }
+            })
+            .collect(),
+        indirect: vec![[0.25; 3]; layout.len()],
+    };
+    let src = TransferRadiance::new(&layout, &radiance);
+    let at = |q: Vec3| {
+        let mut sum = CellSum::default();
+        src.add(q, 1.0, &mut sum);
+        src.total(sum)
+    };
+    // The layout's own trilinear weights, direct red.
+    let want = |q: Vec3| -> f32 {
+        layout
+            .corners(q)
+            .iter()
+            .map(|(s, w)| s.map_or(0.0, |s| w * radiance.direct[s][0]))
+            .sum()
+    };
+    // Between x = 5 and 6, next to the unlit plane, and at a corner.
+    let points = [
+        Vec3::new(33.0, 20.5, 70.25),
+        Vec3::new(3.0, 20.5, 70.25),
+        Vec3::new(1.0, 9.7, 3.0),
+    ];
+    for q in points {
+        let [d, i] = at(q);
+        assert!((d[0] - want(q)).abs() < 1e-5, "{q}");
+        assert!((i[0] - 0.25).abs() < 1e-6);
+    }
+    let [d, _] = at(points[0]);
+    assert!(
+        (d[0] - 5.5).abs() < 1e-5 && (d[1] - 1.0).abs() < 1e-6,
+        "{d:?}"
+    );
+    // A weighted sum over steps that leave a cell and come back to it is the sum of the
+    // weighted point values: no cell's weights are lost or counted twice.
+    let steps = [
+        (points[0], 0.5),
+        (points[0] + 0.5, 0.25),
+        (points[1], 2.0),
+        (points[0], 1.0),
+    ];
+    let mut sum = CellSum::default();
+    steps.iter().for_each(|&(q, c)| src.add(q, c, &mut sum));
+    let [d, i] = src.total(sum);
+    let expect: f32 = steps.iter().map(|&(q, c)| c * want(q)).sum();
+    assert!(
+        (d[0] - expect).abs() < 1e-5 * expect,
+        "{} vs {expect}",
+        d[0]
+    );
+    assert!((i[2] - 0.25 * 3.75).abs() < 1e-6);
+}
+
+#[test]
+fn real_cloud_skip_equals_plain() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/cloud.vdb");
+    let vdb = crate::volume::vdb::VdbFile::open(std::path::Path::new(path)).unwrap();
+    let g = vdb.read_grid(vdb.choose_grid(None).unwrap()).unwrap();
+    let field = DensityField::new(g.clone());
+    let (lo, hi) = g.active_bbox().unwrap();
+    let (wlo, whi) = (
+        g.transform.index_to_world(lo.as_dvec3()).as_vec3(),
+        g.transform.index_to_world(hi.as_dvec3()).as_vec3(),
+    );
+    let cam = Camera::framing(wlo.min(whi), wlo.max(whi), 64, 48, 45.0).unwrap();
+    let sky = |d: Vec3| [0.2 + d.y.max(0.0), 0.4, 0.9];
+    // An optical depth of about 8 across the cloud's 96-voxel width at density 1.
+    let sigma_t = 8.0 / (96.0 * g.transform.voxel_size().x as f32);
+    let source = smooth();
+    let scene = Scene::new(&field, medium(sigma_t, 0.9), &source, Some(&sky));
+    let (a, sa) = render(
+        &scene,
+        &cam,
+        &MarchSettings::default(),
+        &ProgressBar::hidden(),
+    );
+    let plain = MarchSettings {
+        skip_empty: false,
+        ..MarchSettings::default()
+    };
+    let (b, _) = render(&scene, &cam, &plain, &ProgressBar::hidden());
+    assert_eq!(a, b);
+    assert!(sa.samples_skipped > 0);
+    // The cloud blocks part of the sky: some pixels are mostly volume.
+    assert!(a.direct.iter().any(|d| d[0] > 0.1));
+}
