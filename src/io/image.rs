@@ -153,29 +153,7 @@ impl ImageBuf {
     pub fn write_exr(self, path: &Path, precision: ExrPrecision) -> Result<()> {
         self.check()?;
         let (width, height) = (self.width, self.height);
-        let rgba = self.rgba.as_flattened();
-        let mut views: Vec<ChannelView> = ["R", "G", "B", "A"]
-            .iter()
-            .enumerate()
-            .map(|(offset, name)| ChannelView {
-                name: name.to_string(),
-                values: rgba,
-                stride: 4,
-                offset,
-            })
-            .collect();
-        for layer in &self.layers {
-            for (offset, channel) in layer.channels.iter().enumerate() {
-                views.push(ChannelView {
-                    name: format!("{}.{channel}", layer.name),
-                    values: &layer.values,
-                    stride: layer.channels.len(),
-                    offset,
-                });
-            }
-        }
-        // EXR stores channels in name order.
-        views.sort_by(|a, b| a.name.cmp(&b.name));
+        let views = self.channel_views();
         let sample_type = match precision {
             ExrPrecision::Float => SampleType::F32,
             ExrPrecision::Half => SampleType::F16,
@@ -193,31 +171,6 @@ impl ImageBuf {
                 LineOrder::Increasing,
             )
             .with_attributes(LayerAttributes::default());
-        // One block's bytes: for each of its lines, each channel's samples (native endian).
-        let block_bytes = |index: &BlockIndex| -> Vec<u8> {
-            let (x, w) = (index.pixel_position.x(), index.pixel_size.x());
-            let rows = index.pixel_position.y()..index.pixel_position.y() + index.pixel_size.y();
-            let bytes = match precision {
-                ExrPrecision::Float => 4,
-                ExrPrecision::Half => 2,
-            };
-            let mut data = vec![0u8; rows.len() * w * views.len() * bytes];
-            // Line by line, channel by channel: one output line per (row, channel).
-            let lines = rows.flat_map(|y| views.iter().map(move |v| (y, v)));
-            for (line, (y, v)) in data.chunks_exact_mut(w * bytes).zip(lines) {
-                let first = (y * width + x) * v.stride + v.offset;
-                let row = v.values[first..].iter().step_by(v.stride);
-                let samples = line.chunks_exact_mut(bytes).zip(row);
-                match precision {
-                    ExrPrecision::Float => {
-                        samples.for_each(|(o, v)| o.copy_from_slice(&v.to_ne_bytes()))
-                    }
-                    ExrPrecision::Half => samples
-                        .for_each(|(o, v)| o.copy_from_slice(&f16::from_f32(*v).to_ne_bytes())),
-                }
-            }
-            data
-        };
         write_atomic(path, |w: &mut BufWriter<std::fs::File>| {
             exr::block::write(w, SmallVec::from_elem(header, 1), true, |meta, chunks| {
                 let blocks: Vec<(usize, BlockIndex)> =
@@ -230,7 +183,7 @@ impl ImageBuf {
                         .map(|&(i, index)| {
                             let block = UncompressedBlock {
                                 index,
-                                data: block_bytes(&index),
+                                data: block_bytes(&views, width, precision, &index),
                             };
                             (i, block.compress_to_chunk(&meta.headers))
                         })
@@ -261,6 +214,33 @@ impl ImageBuf {
         })
     }
 
+    /// Every channel as a strided view of the buffers, in name order (as EXR stores them).
+    fn channel_views(&self) -> Vec<ChannelView<'_>> {
+        let rgba = self.rgba.as_flattened();
+        let mut views: Vec<ChannelView> = ["R", "G", "B", "A"]
+            .iter()
+            .enumerate()
+            .map(|(offset, name)| ChannelView {
+                name: name.to_string(),
+                values: rgba,
+                stride: 4,
+                offset,
+            })
+            .collect();
+        for layer in &self.layers {
+            for (offset, channel) in layer.channels.iter().enumerate() {
+                views.push(ChannelView {
+                    name: format!("{}.{channel}", layer.name),
+                    values: &layer.values,
+                    stride: layer.channels.len(),
+                    offset,
+                });
+            }
+        }
+        views.sort_by(|a, b| a.name.cmp(&b.name));
+        views
+    }
+
     /// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve.
     /// Fully opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as
     /// PNG expects.
@@ -286,6 +266,36 @@ impl ImageBuf {
         };
         write_atomic(path, |out| encode_png(out, w32, h32, opaque, &bytes))
     }
+}
+
+/// One EXR block's bytes: for each of its lines, each channel's samples (native endian).
+fn block_bytes(
+    views: &[ChannelView],
+    width: usize,
+    precision: ExrPrecision,
+    index: &BlockIndex,
+) -> Vec<u8> {
+    let (x, w) = (index.pixel_position.x(), index.pixel_size.x());
+    let rows = index.pixel_position.y()..index.pixel_position.y() + index.pixel_size.y();
+    let bytes = match precision {
+        ExrPrecision::Float => 4,
+        ExrPrecision::Half => 2,
+    };
+    let mut data = vec![0u8; rows.len() * w * views.len() * bytes];
+    // Line by line, channel by channel: one output line per (row, channel).
+    let lines = rows.flat_map(|y| views.iter().map(move |v| (y, v)));
+    for (line, (y, v)) in data.chunks_exact_mut(w * bytes).zip(lines) {
+        let first = (y * width + x) * v.stride + v.offset;
+        let row = v.values[first..].iter().step_by(v.stride);
+        let samples = line.chunks_exact_mut(bytes).zip(row);
+        match precision {
+            ExrPrecision::Float => samples.for_each(|(o, v)| o.copy_from_slice(&v.to_ne_bytes())),
+            ExrPrecision::Half => {
+                samples.for_each(|(o, v)| o.copy_from_slice(&f16::from_f32(*v).to_ne_bytes()))
+            }
+        }
+    }
+    data
 }
 
 fn encode_png<W: Write + Seek>(

@@ -202,117 +202,13 @@ fn shell(lo: IVec3, hi: IVec3) -> impl Iterator<Item = IVec3> {
 
 impl Occupancy {
     pub fn build(grid: &SparseGrid) -> Occupancy {
-        let mut blocks = HashMap::new();
-        // Positive voxels as inclusive boxes, with their maximum.
-        let boxes = grid
-            .leaves()
-            .iter()
-            .filter(|l| l.max > 0.0)
-            .filter_map(|l| positive_box(l).map(|(lo, hi)| (lo, hi, l.max)))
-            .chain(
-                grid.tiles(TileLevel::Block)
-                    .filter(|&(_, v)| v > 0.0)
-                    .map(|(o, v)| (o, o + IVec3::splat(LEAF_DIM - 1), v)),
-            );
-        for (lo, hi, max) in boxes {
-            let d = IVec3::splat(DILATION);
-            mark_box(&mut blocks, lo - d, hi + d, max);
-        }
-        let mut dense: HashMap<IVec3, f32> = HashMap::new();
-        for (origin, value) in grid.tiles(TileLevel::Node) {
-            if value > 0.0 {
-                let node = origin >> NODE_LOG2;
-                raise(&mut dense, node, value);
-                let lo = node << BLOCKS_PER_NODE_LOG2;
-                let hi = lo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
-                let (vlo, vhi) = (
-                    origin - DILATION,
-                    origin + ((1 << NODE_LOG2) - 1) + DILATION,
-                );
-                shell(lo, hi).for_each(|b| mark(&mut blocks, b, vlo, vhi, value));
-            }
-        }
-        let mut roots = HashMap::new();
-        for (origin, value) in grid.tiles(TileLevel::Root) {
-            if value > 0.0 {
-                let root = origin >> TileLevel::Root.log2() as i32;
-                raise(&mut roots, root, value);
-                let lo = root << NODES_PER_ROOT_LOG2;
-                let hi = lo + IVec3::splat((1 << NODES_PER_ROOT_LOG2) - 1);
-                shell(lo, hi).for_each(|n| raise(&mut dense, n, value));
-            }
-        }
-        // A dense node bounds the dilated blocks inside it; a root tile bounds everything inside.
-        for (&b, c) in &blocks {
-            if let Some(d) = dense.get_mut(&(b >> BLOCKS_PER_NODE_LOG2)) {
-                *d = d.max(c.max);
-            }
-        }
-        let root_of = |n: IVec3| n >> NODES_PER_ROOT_LOG2;
-        let mut root_raise: Vec<(IVec3, f32)> = Vec::new();
-        for (&b, c) in &blocks {
-            root_raise.push((root_of(b >> BLOCKS_PER_NODE_LOG2), c.max));
-        }
-        for (&n, &v) in &dense {
-            root_raise.push((root_of(n), v));
-        }
-        for (r, v) in root_raise {
-            if let Some(m) = roots.get_mut(&r) {
-                *m = m.max(v);
-            }
-        }
+        let (blocks, dense, roots) = mark_occupied(grid);
+        let bounds = occupied_bounds(&blocks, &dense);
         let mut nodes: HashMap<IVec3, NodeCell> = dense
             .iter()
             .map(|(&n, &v)| (n, NodeCell::Dense(v)))
             .collect();
-        // Partial nodes: their masks first, then their cells gathered in rank order.
-        let mut partial: Vec<(IVec3, [u64; MASK_WORDS])> = Vec::new();
-        for &b in blocks.keys() {
-            let cell = nodes.entry(b >> BLOCKS_PER_NODE_LOG2).or_insert_with(|| {
-                partial.push((b >> BLOCKS_PER_NODE_LOG2, [0; MASK_WORDS]));
-                NodeCell::Partial(partial.len() as u32 - 1)
-            });
-            if let NodeCell::Partial(m) = *cell {
-                let (word, bit) = mask_bit(b);
-                partial[m as usize].1[word] |= 1 << bit;
-            }
-        }
-        let mut cells = Vec::with_capacity(blocks.len());
-        let partial = partial
-            .into_iter()
-            .map(|(node, mask)| {
-                let mut first = [0; MASK_WORDS];
-                for (word, &bits) in mask.iter().enumerate() {
-                    first[word] = cells.len() as u32;
-                    let mut rest = bits;
-                    while rest != 0 {
-                        let i = word as i32 * 64 + rest.trailing_zeros() as i32;
-                        let offset = IVec3::new(
-                            i >> (2 * BLOCKS_PER_NODE_LOG2),
-                            i >> BLOCKS_PER_NODE_LOG2,
-                            i,
-                        ) & ((1 << BLOCKS_PER_NODE_LOG2) - 1);
-                        cells.push(blocks[&((node << BLOCKS_PER_NODE_LOG2) + offset)]);
-                        rest &= rest - 1;
-                    }
-                }
-                NodeBlocks { mask, first }
-            })
-            .collect();
-        // Bounds: every occupied cell (root interiors are enclosed by their dense ring nodes).
-        let mut lo = DVec3::INFINITY;
-        let mut hi = DVec3::NEG_INFINITY;
-        let mut cover = |(a, b): (DVec3, DVec3)| {
-            lo = lo.min(a);
-            hi = hi.max(b);
-        };
-        blocks.iter().for_each(|(&b, c)| cover(c.bounds(b)));
-        dense.keys().for_each(|&n| {
-            let size = (1i64 << NODE_LOG2) as f64;
-            let a = n.as_dvec3() * size;
-            cover((a, a + size));
-        });
-        let bounds = (lo.x <= hi.x).then_some((lo, hi));
+        let (partial, cells) = gather_partial(&blocks, &mut nodes);
         Occupancy {
             nodes,
             partial,
@@ -420,6 +316,141 @@ impl Occupancy {
         });
         out
     }
+}
+
+/// The dilated blocks of every positive leaf and block tile, the dense nodes (node tiles, and the
+/// ring of nodes around each root tile) and the root tiles, each with the largest density it
+/// bounds: a dense node bounds the blocks inside it, a root tile everything inside it.
+#[allow(clippy::type_complexity)]
+fn mark_occupied(
+    grid: &SparseGrid,
+) -> (
+    HashMap<IVec3, BlockCell>,
+    HashMap<IVec3, f32>,
+    HashMap<IVec3, f32>,
+) {
+    let mut blocks = HashMap::new();
+    // Positive voxels as inclusive boxes, with their maximum.
+    let boxes = grid
+        .leaves()
+        .iter()
+        .filter(|l| l.max > 0.0)
+        .filter_map(|l| positive_box(l).map(|(lo, hi)| (lo, hi, l.max)))
+        .chain(
+            grid.tiles(TileLevel::Block)
+                .filter(|&(_, v)| v > 0.0)
+                .map(|(o, v)| (o, o + IVec3::splat(LEAF_DIM - 1), v)),
+        );
+    for (lo, hi, max) in boxes {
+        let d = IVec3::splat(DILATION);
+        mark_box(&mut blocks, lo - d, hi + d, max);
+    }
+    let mut dense: HashMap<IVec3, f32> = HashMap::new();
+    for (origin, value) in grid.tiles(TileLevel::Node) {
+        if value > 0.0 {
+            let node = origin >> NODE_LOG2;
+            raise(&mut dense, node, value);
+            let lo = node << BLOCKS_PER_NODE_LOG2;
+            let hi = lo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
+            let (vlo, vhi) = (
+                origin - DILATION,
+                origin + ((1 << NODE_LOG2) - 1) + DILATION,
+            );
+            shell(lo, hi).for_each(|b| mark(&mut blocks, b, vlo, vhi, value));
+        }
+    }
+    let mut roots = HashMap::new();
+    for (origin, value) in grid.tiles(TileLevel::Root) {
+        if value > 0.0 {
+            let root = origin >> TileLevel::Root.log2() as i32;
+            raise(&mut roots, root, value);
+            let lo = root << NODES_PER_ROOT_LOG2;
+            let hi = lo + IVec3::splat((1 << NODES_PER_ROOT_LOG2) - 1);
+            shell(lo, hi).for_each(|n| raise(&mut dense, n, value));
+        }
+    }
+    // A dense node bounds the dilated blocks inside it; a root tile bounds everything inside.
+    for (&b, c) in &blocks {
+        if let Some(d) = dense.get_mut(&(b >> BLOCKS_PER_NODE_LOG2)) {
+            *d = d.max(c.max);
+        }
+    }
+    let root_of = |n: IVec3| n >> NODES_PER_ROOT_LOG2;
+    let mut root_raise: Vec<(IVec3, f32)> = Vec::new();
+    for (&b, c) in &blocks {
+        root_raise.push((root_of(b >> BLOCKS_PER_NODE_LOG2), c.max));
+    }
+    for (&n, &v) in &dense {
+        root_raise.push((root_of(n), v));
+    }
+    for (r, v) in root_raise {
+        if let Some(m) = roots.get_mut(&r) {
+            *m = m.max(v);
+        }
+    }
+    (blocks, dense, roots)
+}
+
+/// Partial nodes: each node's mask of occupied blocks, then their cells gathered in rank order
+/// (a cell is found by its rank in the mask, not by a hash lookup).
+fn gather_partial(
+    blocks: &HashMap<IVec3, BlockCell>,
+    nodes: &mut HashMap<IVec3, NodeCell>,
+) -> (Vec<NodeBlocks>, Vec<BlockCell>) {
+    let mut partial: Vec<(IVec3, [u64; MASK_WORDS])> = Vec::new();
+    for &b in blocks.keys() {
+        let cell = nodes.entry(b >> BLOCKS_PER_NODE_LOG2).or_insert_with(|| {
+            partial.push((b >> BLOCKS_PER_NODE_LOG2, [0; MASK_WORDS]));
+            NodeCell::Partial(partial.len() as u32 - 1)
+        });
+        if let NodeCell::Partial(m) = *cell {
+            let (word, bit) = mask_bit(b);
+            partial[m as usize].1[word] |= 1 << bit;
+        }
+    }
+    let mut cells = Vec::with_capacity(blocks.len());
+    let partial = partial
+        .into_iter()
+        .map(|(node, mask)| {
+            let mut first = [0; MASK_WORDS];
+            for (word, &bits) in mask.iter().enumerate() {
+                first[word] = cells.len() as u32;
+                let mut rest = bits;
+                while rest != 0 {
+                    let i = word as i32 * 64 + rest.trailing_zeros() as i32;
+                    let offset = IVec3::new(
+                        i >> (2 * BLOCKS_PER_NODE_LOG2),
+                        i >> BLOCKS_PER_NODE_LOG2,
+                        i,
+                    ) & ((1 << BLOCKS_PER_NODE_LOG2) - 1);
+                    cells.push(blocks[&((node << BLOCKS_PER_NODE_LOG2) + offset)]);
+                    rest &= rest - 1;
+                }
+            }
+            NodeBlocks { mask, first }
+        })
+        .collect();
+    (partial, cells)
+}
+
+/// The box of every occupied cell (root interiors are enclosed by their dense ring nodes).
+fn occupied_bounds(
+    blocks: &HashMap<IVec3, BlockCell>,
+    dense: &HashMap<IVec3, f32>,
+) -> Option<(DVec3, DVec3)> {
+    let mut lo = DVec3::INFINITY;
+    let mut hi = DVec3::NEG_INFINITY;
+    let mut cover = |(a, b): (DVec3, DVec3)| {
+        lo = lo.min(a);
+        hi = hi.max(b);
+    };
+    blocks.iter().for_each(|(&b, c)| cover(c.bounds(b)));
+    dense.keys().for_each(|&n| {
+        let size = (1i64 << NODE_LOG2) as f64;
+        let a = n.as_dvec3() * size;
+        cover((a, a + size));
+    });
+    (lo.x <= hi.x).then_some((lo, hi))
 }
 
 /// Hands the open span, if any, to `f`: the ray has met empty space.

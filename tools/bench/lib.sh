@@ -75,14 +75,22 @@ j() {
     if [ -z "$v" ]; then echo "-"; elif [ -n "${3:-}" ]; then printf "$3" "$v"; else echo "$v"; fi
 }
 
-# wall_of CMD... : wall seconds of one run (bash's microsecond clock), its output discarded
+# wall_of CMD... : wall seconds of one run (bash's microsecond clock), its output discarded; "-" and a
+# FAILED line on stderr when the run fails, so a failure never passes for a time.
 wall_of() {
-    local t0=$EPOCHREALTIME
-    "$@" >/dev/null 2>&1 || true
+    local t0=$EPOCHREALTIME rc=0
+    "$@" >/dev/null 2>"$LOG/wall_of.err" || rc=$?
+    if [ "$rc" != 0 ]; then
+        echo "FAILED (exit $rc): $* : $(tail -1 "$LOG/wall_of.err")" >&2
+        echo "-"
+        return 0
+    fi
     awk -v a="$t0" -v b="$EPOCHREALTIME" 'BEGIN{ printf "%.3f", b - a }'
 }
-# median VALUES... : the middle value (the mean of the two middle ones for an even count)
+# median VALUES... : the middle value (the mean of the two middle ones for an even count); "-" when
+# any value is "-" (a failed run), never a median of the runs that happened to work.
 median() {
+    case " $* " in *" - "*) echo "-"; return 0 ;; esac
     printf "%s\n" "$@" | sort -g | awk '{ v[NR] = $1 } END{
         if (NR % 2) printf "%.2f", v[(NR + 1) / 2]; else printf "%.2f", (v[NR / 2] + v[NR / 2 + 1]) / 2 }'
 }

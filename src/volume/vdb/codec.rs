@@ -332,44 +332,64 @@ fn unblosc(frame: &[u8], expected: usize, out: &mut Vec<u8>) -> Result<(), VdbEr
         let ssize = bsize / ns;
         streams.clear();
         streams.resize(bsize, 0u8);
-        let mut pos = start;
-        for s in 0..ns {
-            if pos < BLOSC_HEADER || pos + 4 > cbytes {
-                return Err(bad("stream offset outside the chunk"));
-            }
-            let csize = le_u32(frame, pos);
-            pos += 4;
-            if csize > cbytes - pos {
-                return Err(bad("stream runs past the end of the chunk"));
-            }
-            let src = &frame[pos..pos + csize];
-            let dst = &mut streams[s * ssize..(s + 1) * ssize];
-            if csize == ssize {
-                dst.copy_from_slice(src);
-            } else {
-                let n = lz4_flex::block::decompress_into(src, dst)
-                    .map_err(|e| bad(&format!("LZ4 stream: {e}")))?;
-                if n != ssize {
-                    return Err(bad("LZ4 stream decodes to the wrong size"));
-                }
-            }
-            pos += csize;
-        }
+        read_streams(frame, start, ssize, &mut streams)?;
         let dst = &mut out[b * blocksize..b * blocksize + bsize];
         if flags & BLOSC_SHUFFLE != 0 && typesize > 1 {
-            let m = bsize / typesize;
-            for i in 0..m {
-                for j in 0..typesize {
-                    dst[i * typesize + j] = streams[j * m + i];
-                }
-            }
-            let tail = m * typesize;
-            dst[tail..].copy_from_slice(&streams[tail..bsize]);
+            unshuffle(&streams, typesize, dst);
         } else {
             dst.copy_from_slice(&streams[..bsize]);
         }
     }
     Ok(())
+}
+
+/// The streams of one Blosc block, starting at offset `start` of `frame`, into `streams` (its
+/// length a whole number of `ssize`-byte streams): each a 4-byte compressed size and then the
+/// LZ4 block, or the raw bytes when the size equals `ssize`.
+fn read_streams(
+    frame: &[u8],
+    start: usize,
+    ssize: usize,
+    streams: &mut [u8],
+) -> Result<(), VdbError> {
+    let bad = |what: &str| VdbError::new(format!("blosc chunk: {what}"));
+    let cbytes = frame.len();
+    let mut pos = start;
+    for dst in streams.chunks_exact_mut(ssize) {
+        if pos < BLOSC_HEADER || pos + 4 > cbytes {
+            return Err(bad("stream offset outside the chunk"));
+        }
+        let csize = le_u32(frame, pos);
+        pos += 4;
+        if csize > cbytes - pos {
+            return Err(bad("stream runs past the end of the chunk"));
+        }
+        let src = &frame[pos..pos + csize];
+        if csize == ssize {
+            dst.copy_from_slice(src);
+        } else {
+            let n = lz4_flex::block::decompress_into(src, dst)
+                .map_err(|e| bad(&format!("LZ4 stream: {e}")))?;
+            if n != ssize {
+                return Err(bad("LZ4 stream decodes to the wrong size"));
+            }
+        }
+        pos += csize;
+    }
+    Ok(())
+}
+
+/// Blosc's byte shuffle undone: byte j of element i was stored at j·m + i (m whole elements);
+/// a tail shorter than one element is stored as it is.
+fn unshuffle(streams: &[u8], typesize: usize, dst: &mut [u8]) {
+    let (n, m) = (dst.len(), dst.len() / typesize);
+    for i in 0..m {
+        for j in 0..typesize {
+            dst[i * typesize + j] = streams[j * m + i];
+        }
+    }
+    let tail = m * typesize;
+    dst[tail..].copy_from_slice(&streams[tail..n]);
 }
 
 #[cfg(test)]

@@ -456,35 +456,16 @@ fn read_grid_header(
             )));
         }
     }
-    let (block_pos, end_pos) = if has_offsets {
-        let desc_end = cur.pos() as i64;
-        let [g, b, e] = offsets;
-        let block_ok = if instance_of.is_some() {
-            b == 0
-        } else {
-            g <= b && b <= e
-        };
-        if !(desc_end <= g && block_ok && g <= e && e <= file_len as i64) {
-            return Err(VdbError::new(format!(
-                "grid {name:?}: offsets {g}/{b}/{e} do not fit in the file ({file_len} bytes)"
-            )));
-        }
-        if earlier
-            .last()
-            .and_then(|l| l.end_pos)
-            .is_some_and(|prev| e as usize <= prev)
-        {
-            return Err(VdbError::new(format!(
-                "grid {name:?}: offsets go backwards"
-            )));
-        }
-        *cur = Cursor::window(cur_data(cur), g as usize, e as usize)?;
-        (
-            instance_of.is_none().then_some(b as usize),
-            Some(e as usize),
-        )
-    } else {
-        (None, None)
+    let (block_pos, end_pos) = match has_offsets {
+        true => grid_window(
+            cur,
+            &name,
+            offsets,
+            instance_of.is_some(),
+            earlier,
+            file_len,
+        )?,
+        false => (None, None),
     };
     let compression = cur.u32("compression flags")?;
     if compression & !(ZIP | ACTIVE_MASK | BLOSC) != 0 {
@@ -516,6 +497,38 @@ fn read_grid_header(
         block_pos,
         end_pos,
     })
+}
+
+/// Checks a grid's offsets (grid, block, end) against the descriptor's end, the file and the grid
+/// before it, and narrows `cur` to the grid's bytes; returns where its buffers start (not for an
+/// instance, which has none) and where it ends.
+fn grid_window(
+    cur: &mut Cursor,
+    name: &str,
+    offsets: [i64; 3],
+    instance: bool,
+    earlier: &[GridInfo],
+    file_len: usize,
+) -> std::result::Result<(Option<usize>, Option<usize>), VdbError> {
+    let desc_end = cur.pos() as i64;
+    let [g, b, e] = offsets;
+    let block_ok = if instance { b == 0 } else { g <= b && b <= e };
+    if !(desc_end <= g && block_ok && g <= e && e <= file_len as i64) {
+        return Err(VdbError::new(format!(
+            "grid {name:?}: offsets {g}/{b}/{e} do not fit in the file ({file_len} bytes)"
+        )));
+    }
+    if earlier
+        .last()
+        .and_then(|l| l.end_pos)
+        .is_some_and(|prev| e as usize <= prev)
+    {
+        return Err(VdbError::new(format!(
+            "grid {name:?}: offsets go backwards"
+        )));
+    }
+    *cur = Cursor::window(cur_data(cur), g as usize, e as usize)?;
+    Ok(((!instance).then_some(b as usize), Some(e as usize)))
 }
 
 /// The whole file behind a cursor (cursors keep absolute offsets).

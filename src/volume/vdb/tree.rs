@@ -73,6 +73,46 @@ struct TreeReader<'a, 'c> {
 }
 
 impl TreeReader<'_, '_> {
+    /// The root's tiles and children (each child an internal-5 node, read recursively): origins
+    /// aligned, in range, unique, and the children sorted, as OpenVDB writes them.
+    fn root(&mut self, num_tiles: usize, num_children: usize) -> Result<(), VdbError> {
+        let mut origins = HashSet::new();
+        let check_origin = |o: IVec3, origins: &mut HashSet<IVec3>| -> Result<(), VdbError> {
+            let aligned = (o.x | o.y | o.z) & (ROOT_DIM - 1) == 0;
+            let in_range = o.to_array().iter().all(|&c| (c as i64) <= MAX_ROOT_ORIGIN);
+            if !aligned || !in_range {
+                return Err(VdbError::new(format!(
+                    "root node origin {o} is not a valid 4096³ origin"
+                )));
+            }
+            if !origins.insert(o) {
+                return Err(VdbError::new(format!("root node origin {o} appears twice")));
+            }
+            Ok(())
+        };
+        for _ in 0..num_tiles {
+            let origin = self.cur.coord("root tile origin")?;
+            check_origin(origin, &mut origins)?;
+            let value = self.fmt.read_full(self.cur, "root tile value")?;
+            if self.cur.bool("root tile active flag")? {
+                self.grid.insert_tile(TileLevel::Root, origin, value);
+            }
+        }
+        let mut previous: Option<IVec3> = None;
+        for _ in 0..num_children {
+            let origin = self.cur.coord("root child origin")?;
+            check_origin(origin, &mut origins)?;
+            if previous.is_some_and(|p| p.to_array() >= origin.to_array()) {
+                return Err(VdbError::new(format!(
+                    "root children are not sorted by origin (at {origin})"
+                )));
+            }
+            previous = Some(origin);
+            self.internal(origin, 5)?;
+        }
+        Ok(())
+    }
+
     /// Reads an internal node with log2 dimension `log2` (5 or 4) at `origin`.
     fn internal(&mut self, origin: IVec3, log2: u32) -> Result<(), VdbError> {
         let slots = 1usize << (3 * log2);
@@ -161,40 +201,7 @@ pub fn read_tree(
         scratch: Vec::new(),
         values: Vec::new(),
     };
-    let mut origins = HashSet::new();
-    let check_origin = |o: IVec3, origins: &mut HashSet<IVec3>| -> Result<(), VdbError> {
-        let aligned = (o.x | o.y | o.z) & (ROOT_DIM - 1) == 0;
-        let in_range = o.to_array().iter().all(|&c| (c as i64) <= MAX_ROOT_ORIGIN);
-        if !aligned || !in_range {
-            return Err(VdbError::new(format!(
-                "root node origin {o} is not a valid 4096³ origin"
-            )));
-        }
-        if !origins.insert(o) {
-            return Err(VdbError::new(format!("root node origin {o} appears twice")));
-        }
-        Ok(())
-    };
-    for _ in 0..num_tiles {
-        let origin = reader.cur.coord("root tile origin")?;
-        check_origin(origin, &mut origins)?;
-        let value = fmt.read_full(reader.cur, "root tile value")?;
-        if reader.cur.bool("root tile active flag")? {
-            reader.grid.insert_tile(TileLevel::Root, origin, value);
-        }
-    }
-    let mut previous: Option<IVec3> = None;
-    for _ in 0..num_children {
-        let origin = reader.cur.coord("root child origin")?;
-        check_origin(origin, &mut origins)?;
-        if previous.is_some_and(|p| p.to_array() >= origin.to_array()) {
-            return Err(VdbError::new(format!(
-                "root children are not sorted by origin (at {origin})"
-            )));
-        }
-        previous = Some(origin);
-        reader.internal(origin, 5)?;
-    }
+    reader.root(num_tiles, num_children)?;
     if let Some(b) = bounds.block_pos {
         if reader.cur.pos() != b {
             return Err(VdbError::new(format!(
@@ -218,8 +225,22 @@ pub fn read_tree(
         leaves,
         ..
     } = reader;
+    read_leaf_buffers(cur, &mut grid, &leaves, &fmt, bounds)?;
+    Ok(grid)
+}
+
+/// The leaves' value buffers, after the topology: each buffer's mask must repeat the topology's,
+/// and the buffers must end where the grid says; then decoded in parallel batches.
+fn read_leaf_buffers(
+    cur: &mut Cursor,
+    grid: &mut SparseGrid,
+    leaves: &[PendingLeaf],
+    fmt: &ValueFormat,
+    bounds: &Bounds,
+) -> Result<(), VdbError> {
+    let background = grid.background;
     let mut blocks: Vec<ValueBlock> = Vec::with_capacity(leaves.len());
-    for leaf in &leaves {
+    for leaf in leaves {
         let m = read_mask(cur, 8, "leaf buffer mask")?;
         if m[..] != leaf.mask[..] {
             return Err(VdbError::new(format!(
@@ -227,7 +248,7 @@ pub fn read_tree(
                 leaf.origin
             )));
         }
-        blocks.push(parse_block(cur, LEAF_VOXELS, popcount(&leaf.mask), &fmt)?);
+        blocks.push(parse_block(cur, LEAF_VOXELS, popcount(&leaf.mask), fmt)?);
     }
     if let Some(e) = bounds.end_pos {
         if cur.pos() != e {
@@ -244,7 +265,7 @@ pub fn read_tree(
             .map_init(
                 || (Vec::new(), Vec::new()),
                 |(scratch, values), (leaf, block)| {
-                    decode_block(block, &fmt, scratch, values)?;
+                    decode_block(block, fmt, scratch, values)?;
                     let mut out = Box::new([background; LEAF_VOXELS]);
                     scatter_active(&leaf.mask, values, LEAF_VOXELS, |n, v| out[n] = v);
                     Ok(out)
@@ -255,5 +276,5 @@ pub fn read_tree(
             grid.insert_leaf(leaf.origin, leaf.mask, *values);
         }
     }
-    Ok(grid)
+    Ok(())
 }
