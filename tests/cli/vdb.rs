@@ -1,12 +1,7 @@
-//! The VDB reader against Debian's OpenVDB (`fixtures/expected.json`), against `vdb-rs` voxel for
-//! voxel, and against damaged files.
+//! `vscatter info` against Debian's OpenVDB (`fixtures/expected.json`), and damaged files as a user
+//! meets them.
 
-use std::collections::BTreeMap;
-
-use glam::IVec3;
 use serde_json::Value;
-use vscatter::volume::vdb::VdbFile;
-use vscatter::volume::TileLevel;
 
 use crate::{assert_clean_failure, fixture, vscatter};
 
@@ -97,79 +92,6 @@ fn double_precision_real_data_is_read() {
     assert!(g["value_min"].as_f64().unwrap() >= 0.0 && g["value_max"].as_f64().unwrap() <= 1.0);
 }
 
-/// Fixtures `vdb-rs` 0.6 cannot read correctly, and why (the reason the product has its own reader).
-const VDB_RS_CANNOT: &[(&str, &str)] = &[
-    (
-        "small_cloud_half.vdb",
-        "vdb-rs panics or misreads half-float grids",
-    ),
-    (
-        "smoke_double_openvdb7.vdb",
-        "vdb-rs returns double grids empty",
-    ),
-];
-
-#[test]
-fn own_reader_agrees_with_vdb_rs_voxel_for_voxel() {
-    let exp = expected();
-    let mut compared = 0;
-    for (file, want) in exp["files"].as_object().unwrap() {
-        if VDB_RS_CANNOT.iter().any(|(f, _)| f == file) {
-            continue;
-        }
-        let ours = VdbFile::open(&fixture(file)).unwrap();
-        let reader = std::fs::File::open(fixture(file)).unwrap();
-        let mut theirs = vdb_rs::VdbReader::new(std::io::BufReader::new(reader)).unwrap();
-        for (i, w) in want["grids"].as_array().unwrap().iter().enumerate() {
-            if w["value_type"] != "float" {
-                continue;
-            }
-            let grid = ours.read_grid(i).unwrap();
-            let name = w["name"].as_str().unwrap();
-            let other = theirs.read_grid::<f32>(name).unwrap();
-            // Every active voxel and tile vdb-rs yields, keyed by origin and level.
-            let mut seen = BTreeMap::new();
-            for (pos, value, level) in other.iter() {
-                let p = pos.as_ivec3();
-                let lvl = match level {
-                    vdb_rs::VdbLevel::Voxel => 0,
-                    vdb_rs::VdbLevel::Node3 => 3,
-                    vdb_rs::VdbLevel::Node4 => 7,
-                };
-                assert!(seen.insert((p.to_array(), lvl), value).is_none());
-            }
-            let mut ours_n = 0;
-            for leaf in grid.leaves() {
-                for slot in 0..512 {
-                    if leaf.is_active(slot) {
-                        let p = leaf.origin + vscatter::volume::grid::slot_offset(slot);
-                        let v = seen.get(&(p.to_array(), 0));
-                        assert_eq!(v, Some(&leaf.values[slot]), "{file}/{name} voxel {p}");
-                        ours_n += 1;
-                    }
-                }
-            }
-            for (level, lvl) in [(TileLevel::Block, 3), (TileLevel::Node, 7)] {
-                for (origin, value) in grid.tiles(level) {
-                    assert_eq!(
-                        seen.get(&(origin.to_array(), lvl)),
-                        Some(&value),
-                        "{file}: tile {origin}"
-                    );
-                    ours_n += 1;
-                }
-            }
-            assert_eq!(
-                ours_n,
-                seen.len(),
-                "{file}/{name}: same number of active items"
-            );
-            compared += 1;
-        }
-    }
-    assert!(compared >= 10, "compared {compared} grids");
-}
-
 #[test]
 fn info_on_a_missing_grid_lists_the_grids() {
     let out = vscatter(&[
@@ -217,56 +139,4 @@ fn damaged_files_are_clear_errors() {
         let name = path.file_name().unwrap().to_str().unwrap();
         assert_clean_failure(&out, 1, name);
     }
-}
-
-/// Deterministic byte flips through the library: every outcome is a value or an error, never a
-/// panic (the measured weakness of vdb-rs: 26 of 200 flips panicked or aborted).
-#[test]
-fn byte_flips_never_panic() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state
-    };
-    for file in [
-        "small_cloud.vdb",
-        "small_cloud_zip.vdb",
-        "small_cloud_half.vdb",
-        "block_tiles.vdb",
-    ] {
-        let original = std::fs::read(fixture(file)).unwrap();
-        for _ in 0..100 {
-            let mut bytes = original.clone();
-            for _ in 0..1 + next() % 3 {
-                let at = (next() % bytes.len() as u64) as usize;
-                bytes[at] ^= 1 << (next() % 8);
-            }
-            let path = dir.path().join(file);
-            std::fs::write(&path, &bytes).unwrap();
-            let outcome = std::panic::catch_unwind(|| {
-                if let Ok(vdb) = VdbFile::open(&path) {
-                    for i in 0..vdb.grids.len() {
-                        let _ = vdb.read_grid(i);
-                    }
-                }
-            });
-            assert!(outcome.is_ok(), "{file}: a byte flip made the reader panic");
-        }
-    }
-}
-
-#[test]
-fn tiles_stay_tiles() {
-    let vdb = VdbFile::open(&fixture("block_tiles.vdb")).unwrap();
-    let grid = vdb.read_grid(0).unwrap();
-    assert_eq!(grid.leaf_count(), 0);
-    assert_eq!(grid.tiles(TileLevel::Node).count(), 1);
-    assert_eq!(grid.tiles(TileLevel::Block).count(), 817);
-    // A point deep inside the 128³ tile, and one on the block's 8³-tile rim.
-    assert_eq!(grid.value(IVec3::new(64, 64, 64)), 0.5);
-    assert_eq!(grid.value(IVec3::new(135, 135, 135)), 0.5);
-    assert_eq!(grid.value(IVec3::new(136, 0, 0)), 0.0);
 }

@@ -535,3 +535,6 @@ fn grid_window(
 fn cur_data<'a>(cur: &Cursor<'a>) -> &'a [u8] {
     cur.data()
 }
+
+#[cfg(test)]
+mod tests;
