@@ -131,16 +131,19 @@ impl Scene {
     }
 
     /// What a user should know before trusting a picture of this scene: a volume with no density
-    /// to show, or transfer voxels too thick to resolve the light.
-    pub fn warnings(&self, scale: i32) -> Vec<String> {
+    /// to show, or — for a transfer at 1/`scale` resolution (`None`: no transfer, the path
+    /// tracer, even of a cache) — transfer voxels too thick to resolve the light; a cache's own scale
+    /// wins over `scale`.
+    pub fn warnings(&self, scale: Option<i32>) -> Vec<String> {
         let grid = &self.field.grid;
-        let scale = self.transfer.as_ref().map_or(scale, |t| t.layout.k);
         if grid.value_stats().is_none_or(|s| s.max <= 0.0) {
             return vec![
                 "the volume has no positive density: the picture shows only the environment".into(),
             ];
         }
-        crate::transfer::resolution_warning(grid, self.medium, scale)
+        let scale = scale.map(|k| self.transfer.as_ref().map_or(k, |t| t.layout.k));
+        scale
+            .and_then(|k| crate::transfer::resolution_warning(grid, self.medium, k))
             .into_iter()
             .collect()
     }

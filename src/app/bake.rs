@@ -63,12 +63,12 @@ pub fn prepare_bake(
 ) -> Result<Option<BakeStats>> {
     let plan = scene.plan(&config.settings);
     if dry_run {
-        warn(&scene.warnings(config.settings.scale));
+        warn(&scene.warnings(Some(config.settings.scale)));
         println!("{}", plan.describe());
         return Ok(None);
     }
     plan.check_budget(&scene.field, &config.settings, config.max_memory)?;
-    warn(&scene.warnings(config.settings.scale));
+    warn(&scene.warnings(Some(config.settings.scale)));
     Ok(Some(scene.bake(config, global.quiet)))
 }
 

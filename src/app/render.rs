@@ -82,7 +82,7 @@ fn pathtrace(scene: &Scene, args: &RenderArgs, view: &View, stats: &mut Value) -
         max_bounces: args.max_bounces.unwrap_or(u32::MAX),
         seed: args.bake.seed,
     };
-    warn(&scene.warnings(args.bake.scale));
+    warn(&scene.warnings(None));
     let clock = Instant::now();
     let (frame, path_stats) = scene.pathtrace(
         view.camera,
@@ -127,7 +127,7 @@ fn transfer(
         stats["bake"] = bake_stats_json(&bake);
         stats["bake_seconds"] = json!(clock.elapsed().as_secs_f64());
     } else {
-        warn(&scene.warnings(config.settings.scale));
+        warn(&scene.warnings(Some(config.settings.scale)));
     }
     let settings = MarchSettings {
         spp: view.spp,
