@@ -68,22 +68,28 @@ fn ring_distances(p: Vec3) -> (f32, f32) {
     (a, b)
 }
 
+/// A fixture's density and its one-band bake at albedo 1 (the white furnace) with extinction
+/// `sigma_t` and transfer scale `k`.
+fn furnace_bake(file: &str, sigma_t: f32, k: i32) -> (SparseGrid, Transfer) {
+    let d = load(file);
+    let medium = Medium {
+        sigma_t,
+        albedo: 1.0,
+    };
+    let (t, _) = bake(&DensityField::new(d.clone()), medium, &settings(1, k), true);
+    (d, t)
+}
+
 #[test]
 fn white_furnace_where_transfer_voxels_are_optically_thin() {
     // Albedo 1 and at most ~0.5 optical depth per transfer voxel: the lattice must put back all
     // the light the unscattered transfer misses. Measured worst deviations: cloud −0.8 % (limit
     // 3 %, the issue's); torus −5.4 % — the lattice's ray effect: its unscattered light runs on
     // 26 beams, and along the rings' axis-aligned tubes some voxels see long dense columns on a
-    // beam where the fine T_ri sees the tube's round section (README, "Accuracy"). Its limit is a
+    // beam where the fine T_ri sees the tube's round section (docs/method.md). Its limit is a
     // regression guard just above what is achieved, not a target.
     for (file, sigma_t, k, limit) in [("cloud.vdb", 0.08, 6, 0.03), ("torus.vdb", 0.15, 3, 0.06)] {
-        let d = load(file);
-        let f = DensityField::new(d.clone());
-        let medium = Medium {
-            sigma_t,
-            albedo: 1.0,
-        };
-        let (t, _) = bake(&f, medium, &settings(1, k), true);
+        let (d, t) = furnace_bake(file, sigma_t, k);
         let (worst, count) = furnace_deviation(&t, inside_by(&d, k, 1));
         assert!(count > 50, "{file}: only {count} interior voxels");
         assert!(worst.abs() < limit, "{file}: furnace off by {worst}");
@@ -103,13 +109,7 @@ fn white_furnace_where_the_volume_is_optically_thick() {
     // ring facing the other across the gap, lit across it through gap-jumping links: +2.7 %.
     for (file, sigma_t, k, surface) in [("cloud.vdb", 1.0, 6, 0.055), ("torus.vdb", 2.0, 2, 0.095)]
     {
-        let d = load(file);
-        let f = DensityField::new(d.clone());
-        let medium = Medium {
-            sigma_t,
-            albedo: 1.0,
-        };
-        let (t, _) = bake(&f, medium, &settings(1, k), true);
+        let (d, t) = furnace_bake(file, sigma_t, k);
         let (worst, count) = furnace_deviation(&t, inside_by(&d, k, 2));
         assert!(count > 40, "{file}: only {count} voxels two inside");
         assert!(worst.abs() < 0.03, "{file}: furnace off by {worst}");
