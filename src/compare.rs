@@ -144,7 +144,7 @@ mod tests {
     fn reference_noise_is_subtracted() {
         // Two references = truth + independent noise of σ = 0.3/√3 (uniform on ±0.3); the image
         // = truth + 0.1. Raw error² = 0.01 + σ²/2; with the noise subtracted, 0.1 again.
-        use crate::render::camera::hash_unit;
+        use crate::math::hash::hash_unit;
         let truth = 2.0f32;
         let n = 20_000u32;
         let noisy = |stream: u32| -> Vec<[f32; 4]> {

@@ -1,5 +1,6 @@
 //! Small numeric pieces the volume, the bake and the renderers share: rays and box clipping, fast
-//! floors.
+//! floors, stateless hashes.
 
 pub mod floor;
+pub mod hash;
 pub mod ray;

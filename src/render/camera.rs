@@ -5,6 +5,7 @@
 use glam::{Vec2, Vec3};
 
 use crate::error::{Error, Result};
+use crate::math::hash::hash_unit;
 
 /// Fraction of the image left free around the framed bounding box on its tighter axis, so the
 /// volume's silhouette never touches the image border.
@@ -130,28 +131,7 @@ impl Camera {
     }
 }
 
-/// A well-mixed 32-bit integer hash (Wellons' "lowbias32"): deterministic jitter from pixel
-/// coordinates, independent of thread scheduling.
-#[inline]
-pub fn hash32(mut x: u32) -> u32 {
-    x ^= x >> 16;
-    x = x.wrapping_mul(0x7feb_352d);
-    x ^= x >> 15;
-    x = x.wrapping_mul(0x846c_a68b);
-    x ^= x >> 16;
-    x
-}
-
-/// A uniform number in [0, 1) from three integers and a stream id (so the pixel jitter and the
-/// step jitter of the same pixel are independent).
-#[inline]
-pub fn hash_unit(a: u32, b: u32, c: u32, stream: u32) -> f32 {
-    let h = hash32(a ^ hash32(b ^ hash32(c ^ hash32(stream))));
-    // The top 24 bits fill an f32 mantissa exactly, so the result is < 1.
-    (h >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
-}
-
-/// Stream ids for [`hash_unit`].
+/// Stream ids for [`hash_unit`](crate::math::hash::hash_unit).
 pub const STREAM_PIXEL: u32 = 0x5049_5845;
 pub const STREAM_STEP: u32 = 0x5354_4550;
 

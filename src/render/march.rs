@@ -24,7 +24,8 @@ use hashbrown::HashMap;
 use indicatif::ProgressBar;
 
 use crate::math::floor::floor_split;
-use crate::render::camera::{hash_unit, Camera, STREAM_STEP};
+use crate::math::hash::hash_unit;
+use crate::render::camera::{Camera, STREAM_STEP};
 use crate::render::film::{self, Background, Frame, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout};

@@ -406,7 +406,7 @@ pub(crate) fn trilinear(c: [f32; 8], f: Vec3) -> f32 {
 /// repeats: a sparse, cloud-like test grid with gaps between leaves.
 #[cfg(test)]
 pub fn add_hashed_leaves(g: &mut SparseGrid, count: u32) {
-    use crate::render::camera::hash_unit;
+    use crate::math::hash::hash_unit;
     for n in 0..count {
         let key = IVec3::new(
             (hash_unit(n, 1, 0, 9) * 14.0) as i32,
