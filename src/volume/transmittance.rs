@@ -53,7 +53,9 @@ impl<'a> OpticalDepth<'a> {
     }
 
     /// World distance along `dir` from index point `origin` to the far side of the density's box,
-    /// and the index-space velocity per world unit.
+    /// and the index-space velocity per world unit. In f32, unlike [`Ray::clip`]: the bake's
+    /// caches are defined by this f32 exit distance (the f64 clip moves the last bit of a few
+    /// T_ri rays' step counts, and with them a cache's bytes).
     fn clip(&self, origin: Vec3, dir: Vec3) -> (f32, Vec3) {
         let v = dir * self.inv_scale;
         let mut exit = f32::INFINITY;
