@@ -7,6 +7,7 @@ use clap::{Args, Parser, Subcommand};
 
 use glam::Vec3;
 use vscatter::error::{Error, Result};
+use vscatter::io::image::{ExrPrecision, WriteOptions};
 use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
 use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
@@ -312,6 +313,17 @@ const DEFAULT_SPP: u32 = 1;
 const DEFAULT_PATHTRACE_SPP: u32 = 64;
 
 impl RenderArgs {
+    /// How the image is written: PNG exposure, EXR precision.
+    pub fn write_options(&self) -> WriteOptions {
+        WriteOptions {
+            exposure: self.png.exposure,
+            precision: match self.exr_half {
+                true => ExrPrecision::Half,
+                false => ExrPrecision::Float,
+            },
+        }
+    }
+
     /// Checks the flags that depend on each other or on the method (the bake flags are checked
     /// by [`BakeArgs::validate`]); returns the samples per pixel and the camera.
     pub fn validate(&self) -> Result<(u32, CameraSpec)> {

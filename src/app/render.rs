@@ -11,7 +11,6 @@ use serde_json::{json, Value};
 use super::args::{GlobalArgs, Method, RenderArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn};
 use vscatter::io::atomic::check_writable;
-use vscatter::io::image::{ExrPrecision, WriteOptions};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress;
 use vscatter::light::Lighting;
@@ -58,7 +57,11 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         },
     };
     view.bar.finish_and_clear();
-    stats["write_seconds"] = json!(write_frame(frame, args)?);
+    let clock = Instant::now();
+    frame
+        .into_image()
+        .write(&args.output, &args.write_options())?;
+    stats["write_seconds"] = json!(clock.elapsed().as_secs_f64());
     if global.stats {
         stats["peak_memory_bytes"] = json!(peak_memory());
         println!("{stats}");
@@ -150,19 +153,4 @@ fn transfer(
     stats["samples_taken"] = json!(march.samples_taken);
     stats["samples_skipped"] = json!(march.samples_skipped);
     Ok(Some(frame))
-}
-
-/// Writes `frame` to `args.output` (EXR or PNG by extension); returns the seconds it took.
-fn write_frame(frame: Frame, args: &RenderArgs) -> Result<f64> {
-    let clock = Instant::now();
-    let options = WriteOptions {
-        exposure: args.png.exposure,
-        precision: if args.exr_half {
-            ExrPrecision::Half
-        } else {
-            ExrPrecision::Float
-        },
-    };
-    frame.into_image().write(&args.output, &options)?;
-    Ok(clock.elapsed().as_secs_f64())
 }
