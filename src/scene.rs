@@ -2,7 +2,7 @@
 //! bake its transfer when it has none, and render it — with the transfer or the path tracer —
 //! under a [`Lighting`]. `render`, and any other front end, calls these and nothing below them.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use indicatif::ProgressBar;
@@ -36,8 +36,6 @@ pub struct Scene {
     pub transfer: Option<Transfer>,
     /// The source file's identity, for a cache written from this scene (`None` for a cache).
     source: Option<Source>,
-    /// The cache the transfer was read from, when it was.
-    pub cache: Option<PathBuf>,
     /// Seconds spent reading the input and building the density's accelerators.
     pub read_seconds: f64,
     pub field_seconds: f64,
@@ -49,14 +47,14 @@ impl Scene {
     /// the medium of `config`.
     pub fn open(path: &Path, config: &BakeConfig) -> Result<Scene> {
         let clock = Instant::now();
-        let (grid, medium, transfer, source, cache) = if cache::is_cache(path)? {
+        let (grid, medium, transfer, source) = if cache::is_cache(path)? {
             let c = cache::read(path)?;
             let medium = c.transfer.medium;
-            (c.density, medium, Some(c.transfer), None, Some(path.into()))
+            (c.density, medium, Some(c.transfer), None)
         } else {
             let loaded = load_density(path, config.grid.as_deref())?;
             let source = Source::of(path, &loaded.name)?;
-            (loaded.grid, config.medium, None, Some(source), None)
+            (loaded.grid, config.medium, None, Some(source))
         };
         let read_seconds = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -66,7 +64,6 @@ impl Scene {
             medium,
             transfer,
             source,
-            cache,
             read_seconds,
             field_seconds: clock.elapsed().as_secs_f64(),
         })
@@ -91,7 +88,6 @@ impl Scene {
             && (h.coefficients == "f16") == config.half;
         if same {
             self.transfer = Some(c.transfer);
-            self.cache = Some(path.into());
         }
         Ok(same)
     }
