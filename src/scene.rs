@@ -165,7 +165,7 @@ impl Scene {
                 "the scene has no transfer: bake it first".into(),
             ));
         };
-        let lookup = |d| lighting.radiance(d);
+        let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
         Ok(render::render_volume(
             &self.field,
@@ -198,7 +198,7 @@ impl Scene {
             max_bounces: trace.max_bounces,
             seed: trace.seed,
         };
-        let lookup = |d| lighting.radiance(d);
+        let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
         render::film::render_frame(camera, trace.spp, background, progress, |sample, stats| {
             tracer.trace(sample, stats)

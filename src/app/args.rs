@@ -8,6 +8,8 @@ use clap::{Args, Parser, Subcommand};
 use glam::Vec3;
 use vscatter::error::{Error, Result};
 use vscatter::io::image::{ExrPrecision, WriteOptions};
+use vscatter::light::sun::{Sun, MAX_SUNS};
+use vscatter::light::LightOptions;
 use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
 use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
@@ -261,6 +263,15 @@ pub struct RenderArgs {
     /// Windowing of the environment's SH coefficients against ringing (thesis eq. 6.1).
     #[arg(long, value_enum, default_value_t = vscatter::light::sh::Window::None)]
     pub window: vscatter::light::sh::Window,
+    /// A sun: the direction it shines from, its RGB irradiance on a facing surface [default: the
+    /// built-in sky's sun, ≈ 7] and its angular radius in degrees [default: 0]. Repeatable; with
+    /// `--env sky` it replaces the sky's own sun.
+    #[arg(long, value_name = "X,Y,Z[,R,G,B[,DEG]]", allow_hyphen_values = true)]
+    pub sun: Vec<String>,
+    /// A sun as `vdb_render -light` reads it: direction toward the light and a colour C that
+    /// scatters C·albedo (irradiance 4π·C) [default colour: 0.7]. Repeatable.
+    #[arg(long, value_name = "X,Y,Z[,R,G,B]", allow_hyphen_values = true)]
+    pub light: Vec<String>,
     /// Image size.
     #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_resolution)]
     pub res: (u32, u32),
@@ -313,6 +324,29 @@ const DEFAULT_SPP: u32 = 1;
 const DEFAULT_PATHTRACE_SPP: u32 = 64;
 
 impl RenderArgs {
+    /// The light besides the map: rotation, scale, window and the suns of `--sun` and `--light`.
+    pub fn light_options(&self) -> Result<LightOptions> {
+        let default_irradiance = vscatter::light::env::sky_sun().irradiance;
+        let suns = self
+            .sun
+            .iter()
+            .map(|s| Sun::parse(s, default_irradiance))
+            .chain(self.light.iter().map(|s| Sun::parse_vdb_render(s)))
+            .collect::<Result<Vec<Sun>>>()?;
+        if suns.len() > MAX_SUNS {
+            return Err(Error::usage(format!(
+                "{} suns given: at most {MAX_SUNS} are supported",
+                suns.len()
+            )));
+        }
+        Ok(LightOptions {
+            rotation_deg: self.env_rotate,
+            scale: self.env_scale,
+            window: self.window,
+            suns,
+        })
+    }
+
     /// How the image is written: PNG exposure, EXR precision.
     pub fn write_options(&self) -> WriteOptions {
         WriteOptions {

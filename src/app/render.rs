@@ -22,6 +22,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     // Every flag and the output path are checked before any work, so a typo costs nothing.
     let config = args.bake.validate()?;
     let (spp, spec) = args.validate()?;
+    let light_options = args.light_options()?;
     check_writable(&args.output)?;
     if let Some(cache) = &args.cache {
         check_writable(cache)?;
@@ -29,7 +30,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
 
     let mut scene = Scene::open(&args.input, &config)?;
     let clock = Instant::now();
-    let lighting = Lighting::load(&args.env, args.env_rotate, args.env_scale, args.window)?;
+    let lighting = Lighting::load(&args.env, &light_options)?;
     let env_seconds = clock.elapsed().as_secs_f64();
     let camera = scene.camera(&spec)?;
     let mut stats = json!({

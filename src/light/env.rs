@@ -9,6 +9,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::light::sh::{self, ShRgb};
+use crate::light::sun::Sun;
 use crate::math::floor::floor;
 
 /// The `--env` value that selects the built-in sky instead of a file.
@@ -144,13 +145,11 @@ impl Environment {
     pub fn sky_with_size(width: usize, height: usize) -> Self {
         let (width, height) = (width.max(1), height.max(1));
         let mut pixels = Vec::with_capacity(width * height);
-        // Soften the sun's edge over about one pixel, so it does not alias into a jagged disc.
-        let pixel_angle = PI / height as f64;
         for row in 0..height {
             let (theta, _, _) = sh::latlong_row(row, height);
             for col in 0..width {
                 let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
-                pixels.push(sky_radiance(sh::direction(theta, phi), pixel_angle));
+                pixels.push(sky_radiance(sh::direction(theta, phi)));
             }
         }
         Environment {
@@ -347,8 +346,8 @@ fn hdr_size(path: &Path, reader: &mut impl BufRead) -> Result<(usize, usize)> {
 /// behind the default camera, which looks down −Z).
 const SUN_ELEVATION_DEG: f64 = 35.0;
 const SUN_AZIMUTH_DEG: f64 = 120.0;
-/// Angular radius of the disc: 4× the real sun's 0.27°, so it spans a few pixels of the default map.
-const SUN_RADIUS_DEG: f64 = 1.1;
+/// Angular radius of the disc: 4× the real sun's 0.27°, so it spans a few pixels of a 1080p view.
+const SUN_RADIUS_DEG: f32 = 1.1;
 /// Sun radiance: a warm white (about 4500 K). Over the disc's 1.16e-3 sr it gives a normal
 /// irradiance of ≈ 7, some 3–4× what the whole dome gives a horizontal surface (≈ 2): a clear-day
 /// balance of sharp key light and soft blue fill.
@@ -359,25 +358,30 @@ const GROUND: [f64; 3] = [0.16, 0.14, 0.12];
 /// Width of the horizon blend, in units of y = cosθ (≈ 1.7°): avoids a hard ring that would ring in SH.
 const HORIZON_BLEND: f64 = 0.03;
 
-/// Radiance of the built-in sky from direction `d`; `pixel_angle` (radians) softens the sun's edge.
-fn sky_radiance(d: [f64; 3], pixel_angle: f64) -> [f32; 3] {
+/// The built-in sky's sun, in the map's frame: a disc of [`SUN_RADIANCE`] and [`SUN_RADIUS_DEG`],
+/// a light beside the map rather than pixels in it, so its shadows are exact (thesis 7.1).
+pub fn sky_sun() -> Sun {
+    let d = sh::direction(
+        (90.0 - SUN_ELEVATION_DEG).to_radians(),
+        SUN_AZIMUTH_DEG.to_radians(),
+    );
+    let omega = 2.0 * PI * (1.0 - (SUN_RADIUS_DEG as f64).to_radians().cos());
+    Sun::new(
+        glam::DVec3::from(d).as_vec3(),
+        SUN_RADIANCE.map(|l| (l * omega) as f32),
+        SUN_RADIUS_DEG,
+    )
+    .expect("the built-in sun is valid")
+}
+
+/// Radiance of the built-in sky (without its sun) from direction `d`.
+fn sky_radiance(d: [f64; 3]) -> [f32; 3] {
     let y = d[1];
     // Sky: zenith blue fading to a pale horizon; (1 − y)³ keeps most of the dome saturated.
     let t = (1.0 - y.max(0.0)).powi(3);
     let sky: [f64; 3] = std::array::from_fn(|k| ZENITH[k] * (1.0 - t) + HORIZON[k] * t);
     let s = smoothstep(-HORIZON_BLEND, HORIZON_BLEND, y);
-    let mut c: [f64; 3] = std::array::from_fn(|k| GROUND[k] * (1.0 - s) + sky[k] * s);
-    let sun = sh::direction(
-        (90.0 - SUN_ELEVATION_DEG).to_radians(),
-        SUN_AZIMUTH_DEG.to_radians(),
-    );
-    let cos_angle = (d[0] * sun[0] + d[1] * sun[1] + d[2] * sun[2]).clamp(-1.0, 1.0);
-    let r = SUN_RADIUS_DEG.to_radians();
-    let soft = pixel_angle.max(1e-6);
-    let disc = 1.0 - smoothstep(r - 0.5 * soft, r + 0.5 * soft, cos_angle.acos());
-    for k in 0..3 {
-        c[k] += disc * SUN_RADIANCE[k];
-    }
+    let c: [f64; 3] = std::array::from_fn(|k| GROUND[k] * (1.0 - s) + sky[k] * s);
     c.map(|v| v as f32)
 }
 
@@ -451,17 +455,19 @@ mod tests {
     }
 
     #[test]
-    fn sky_is_finite_bright_sun_dark_ground() {
+    fn sky_is_finite_soft_with_a_bright_sun_beside_it() {
         let env = Environment::load(SKY_SPEC).unwrap();
         assert_eq!((env.width(), env.height()), (SKY_WIDTH, SKY_HEIGHT));
-        let sun = sh::direction(
-            (90.0 - SUN_ELEVATION_DEG).to_radians(),
-            SUN_AZIMUTH_DEG.to_radians(),
-        );
-        let at_sun = env.lookup(sun);
+        let sun = sky_sun();
+        let at_sun = env.lookup(sun.direction.as_dvec3().to_array());
         let zenith = env.lookup([0.0, 1.0, 0.0]);
         let ground = env.lookup([0.0, -1.0, 0.0]);
-        assert!(at_sun[0] > 500.0 * zenith[0]);
+        // The sun is a light, not pixels: the map is soft where it stands.
+        assert!(at_sun[0] < 2.0 * zenith[0].max(at_sun[2]));
+        // Its disc: radiance × solid angle, ≈ 7 on a facing surface, 3–4× the dome's ≈ 2.
+        let omega = 2.0 * PI * (1.0 - 1.1f64.to_radians().cos());
+        assert!((sun.irradiance[0] as f64 - 6000.0 * omega).abs() < 1e-3);
+        assert!((6.5..7.5).contains(&sun.irradiance[0]), "{:?}", sun.irradiance);
         assert!(zenith[2] > zenith[0], "zenith is blue");
         assert!(ground[2] < zenith[2]);
         assert!(all_finite_non_negative(&env));

@@ -111,6 +111,7 @@ mod tests {
             rotation,
             scale,
             window: Window::None,
+            suns: Vec::new(),
         }
     }
 

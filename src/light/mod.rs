@@ -1,21 +1,23 @@
 //! Light: environment maps and the built-in sky, their spherical-harmonic projection, importance
-//! sampling for the path tracer, and [`Lighting`], everything a render needs to know about its
-//! light.
+//! sampling for the path tracer, suns, and [`Lighting`], everything a render needs to know about
+//! its light.
 
 pub mod env;
 pub(crate) mod envlight;
 pub mod sh;
+pub mod sun;
 
 use glam::Vec3;
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use env::Environment;
 use envlight::EnvLight;
 use sh::Window;
+use sun::{Sun, MAX_SUNS};
 
 /// Everything about the light of a render: the environment map (or the built-in sky), how it is
-/// turned and scaled, and how its SH projection is windowed. Both renderers and the background
-/// take their light from here, so they see the same world.
+/// turned and scaled, how its SH projection is windowed, and the suns beside it. Both renderers
+/// and the background take their light from here, so they see the same world.
 pub struct Lighting {
     pub env: Environment,
     /// Turn about +Y, radians, counter-clockwise seen from above (as [`sh::Sh::rotate_y`]).
@@ -24,17 +26,53 @@ pub struct Lighting {
     pub scale: f32,
     /// Windowing of the SH coefficients against ringing.
     pub window: Window,
+    /// Directional lights, world space, final irradiance (the map's own sun turned and scaled
+    /// with the map). They are not in `env`: the SH part never sees them.
+    pub suns: Vec<Sun>,
+}
+
+/// How to light a render besides the map itself.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LightOptions {
+    /// Turn of the map (and of its own sun) about +Y, degrees.
+    pub rotation_deg: f64,
+    /// Multiplies the map's radiance (and its own sun's).
+    pub scale: f32,
+    pub window: Window,
+    /// Suns given by the user, world space, not scaled. With the built-in sky they replace its sun.
+    pub suns: Vec<Sun>,
 }
 
 impl Lighting {
-    /// Loads `spec` (a latlong .exr or .hdr, or `sky`) turned by `rotation_deg` about +Y.
-    pub fn load(spec: &str, rotation_deg: f64, scale: f32, window: Window) -> Result<Lighting> {
-        Ok(Lighting {
+    /// Loads `spec` (a latlong .exr or .hdr, or `sky`: a soft sky and its sun) lit as `options`
+    /// says.
+    pub fn load(spec: &str, options: &LightOptions) -> Result<Lighting> {
+        let sky = spec == env::SKY_SPEC;
+        let mut lighting = Lighting {
             env: Environment::load(spec)?,
-            rotation: rotation_deg.to_radians(),
-            scale,
-            window,
-        })
+            rotation: options.rotation_deg.to_radians(),
+            scale: options.scale,
+            window: options.window,
+            suns: Vec::new(),
+        };
+        if sky && options.suns.is_empty() {
+            lighting.add_map_sun(env::sky_sun());
+        }
+        lighting.suns.extend_from_slice(&options.suns);
+        if lighting.suns.len() > MAX_SUNS {
+            return Err(Error::usage(format!(
+                "{} suns: at most {MAX_SUNS} are supported",
+                lighting.suns.len()
+            )));
+        }
+        Ok(lighting)
+    }
+
+    /// Adds a sun given in the map's own frame: turned and scaled with the map.
+    fn add_map_sun(&mut self, sun: Sun) {
+        let mut s = sun.rotated_y(self.rotation);
+        s.irradiance = s.irradiance.map(|e| e * self.scale);
+        self.suns.push(s);
     }
 
     /// The RGB SH coefficients of the light for `bands` bands, windowed, turned and scaled: what
@@ -56,6 +94,17 @@ impl Lighting {
         self.env
             .lookup_rotated(d, self.rotation)
             .map(|v| v * self.scale)
+    }
+
+    /// What a camera ray that leaves the volume along `dir` sees: the map and the discs of the suns.
+    pub fn background(&self, dir: Vec3) -> [f32; 3] {
+        let mut c = self.radiance(dir);
+        for s in &self.suns {
+            for (c, l) in c.iter_mut().zip(s.radiance(dir)) {
+                *c += l;
+            }
+        }
+        c
     }
 
     /// The light prepared for importance sampling (the path tracer's next-event estimation).
@@ -88,6 +137,7 @@ mod tests {
             rotation: angle,
             scale: 3.0,
             window: Window::None,
+            suns: Vec::new(),
         };
         for d in [
             Vec3::new(0.3, 0.5, -0.8),
@@ -124,6 +174,7 @@ mod tests {
             rotation: 1.1,
             scale: 2.0,
             window: Window::Hamming,
+            suns: Vec::new(),
         };
         let coeffs = lighting.sh_coefficients(3);
         // L = c: c_00 = ∫ c·Y00 dω = c·√(4π), times the scale; the turn and window keep band 0.

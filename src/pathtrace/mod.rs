@@ -230,6 +230,7 @@ mod tests {
             rotation: 0.0,
             scale: 1.0,
             window: Window::None,
+            suns: Vec::new(),
         };
         let light = lighting.sampler();
         let tracer = PathTracer {
@@ -289,6 +290,7 @@ mod tests {
             rotation: 0.0,
             scale: 1.0,
             window: Window::None,
+            suns: Vec::new(),
         };
         let light = lighting.sampler();
         let sigma_t = 0.01f32;

@@ -243,6 +243,7 @@ mod tests {
             rotation: 0.0,
             scale: 1.0,
             window: Window::None,
+            suns: Vec::new(),
         };
         let bg = |_: Vec3| c;
         let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 24, 16, 45.0).unwrap();
