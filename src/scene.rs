@@ -195,6 +195,7 @@ impl Scene {
             },
             albedo: self.medium.albedo,
             light: &light,
+            suns: &lighting.suns,
             max_bounces: trace.max_bounces,
             seed: trace.seed,
         };

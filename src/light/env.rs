@@ -467,7 +467,11 @@ mod tests {
         // Its disc: radiance × solid angle, ≈ 7 on a facing surface, 3–4× the dome's ≈ 2.
         let omega = 2.0 * PI * (1.0 - 1.1f64.to_radians().cos());
         assert!((sun.irradiance[0] as f64 - 6000.0 * omega).abs() < 1e-3);
-        assert!((6.5..7.5).contains(&sun.irradiance[0]), "{:?}", sun.irradiance);
+        assert!(
+            (6.5..7.5).contains(&sun.irradiance[0]),
+            "{:?}",
+            sun.irradiance
+        );
         assert!(zenith[2] > zenith[0], "zenith is blue");
         assert!(ground[2] < zenith[2]);
         assert!(all_finite_non_negative(&env));

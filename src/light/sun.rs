@@ -66,8 +66,12 @@ impl Sun {
             3 => default_irradiance,
             _ => [v[3], v[4], v[5]],
         };
-        Sun::new(Vec3::new(v[0], v[1], v[2]), irradiance, v.get(6).copied().unwrap_or(0.0))
-            .map_err(|e| Error::usage(format!("--sun {spec}: {e}")))
+        Sun::new(
+            Vec3::new(v[0], v[1], v[2]),
+            irradiance,
+            v.get(6).copied().unwrap_or(0.0),
+        )
+        .map_err(|e| Error::usage(format!("--sun {spec}: {e}")))
     }
 
     /// `--light X,Y,Z[,R,G,B]` as `vdb_render` reads it: the direction toward the light and a

@@ -11,6 +11,10 @@
 //! - **phase sampling**: a uniform direction (the isotropic phase, so f/p = 1); if delta tracking
 //!   lets it escape, it sees E with weight β·w_phase; if it collides, the path goes on from there.
 //!
+//! Each sun is gathered by next-event estimation alone — a direction uniform over its disc (pdf
+//! 1/Ω against radiance E/Ω), or its direction for a point — weight β·(1/4π)·Tr·E. Suns are not
+//! in the map, so an escaping phase-sampled ray never sees one and nothing is counted twice.
+//!
 //! Light scattered once (found at the first collision) is the `direct` layer, the rest `indirect`,
 //! matching the transfer's T_ri and F_ms. After [`ROULETTE_AFTER`] scatterings Russian roulette
 //! survives with probability q = β, so a surviving path's weight β/q is exactly 1 and never
@@ -27,6 +31,7 @@ use rand::{Rng, SeedableRng};
 pub use crate::light::envlight::EnvLight;
 pub use tracking::{Medium3d, TrackStats};
 
+use crate::light::sun::Sun;
 use crate::render::film::{CameraSample, RayResult};
 use crate::volume::bricks::BrickSampler;
 
@@ -45,6 +50,7 @@ pub struct PathTracer<'a> {
     pub medium: Medium3d<'a>,
     pub albedo: f32,
     pub light: &'a EnvLight<'a>,
+    pub suns: &'a [Sun],
     /// Most scattering events per path (`--max-bounces`; 1 = single scattering).
     pub max_bounces: u32,
     pub seed: u64,
@@ -156,6 +162,14 @@ impl PathTracer<'_> {
                     add(beta * PHASE * tr * mis / pdf_light, self.light.radiance(wl));
                 }
             }
+            // Next-event estimation towards each sun: a delta (or a small disc) no phase sample hits.
+            for sun in self.suns {
+                let wl = sun.sample(rng.random(), rng.random());
+                let tr = self.medium.transmittance(x, wl, rng, sampler, track);
+                if tr > 0.0 {
+                    add(beta * PHASE * tr, sun.irradiance);
+                }
+            }
             // Phase sampling: escape sees the environment, a collision continues the path.
             let w = uniform_sphere(rng);
             match self.medium.collide(x, w, rng, sampler, track) {
@@ -240,6 +254,7 @@ mod tests {
             },
             albedo,
             light: &light,
+            suns: &[],
             max_bounces,
             seed: 5,
         };
@@ -301,6 +316,7 @@ mod tests {
             },
             albedo: 0.0,
             light: &light,
+            suns: &[],
             max_bounces: u32::MAX,
             seed: 1,
         };
@@ -323,6 +339,58 @@ mod tests {
         let got = sum / n as f64;
         let sigma = (want * (1.0 - want) / n as f64).sqrt();
         assert!((got - want).abs() < 4.0 * sigma, "{got} vs {want}");
+    }
+
+    #[test]
+    fn a_sun_behind_the_camera_gives_the_analytic_single_scattering() {
+        // Camera ray and shadow ray run along one line through a 128³ tile of density 1: with
+        // T(s) the optical depth to depth s, L = ∫ σs·(1/4π)·E·e^{−2T(s)} ds = albedo·E/(4π) ·
+        // (1 − e^{−2τ})/2, τ = σt·128, whatever the trilinear ramps at the faces.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        g.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
+        let field = DensityField::new(g);
+        let lighting = Lighting {
+            env: constant_env(0.0),
+            rotation: 0.0,
+            scale: 1.0,
+            window: Window::None,
+            suns: Vec::new(),
+        };
+        let light = lighting.sampler();
+        let (sigma_t, albedo, e) = (0.01f32, 0.8f32, 3.0f32);
+        let suns = [Sun::new(Vec3::Z, [e; 3], 0.0).unwrap()];
+        let tracer = PathTracer {
+            medium: Medium3d {
+                field: &field,
+                sigma_t,
+            },
+            albedo,
+            light: &light,
+            suns: &suns,
+            max_bounces: 1,
+            seed: 3,
+        };
+        let n = 40_000u32;
+        let mut stats = PathStats::default();
+        let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+        for index in 0..n {
+            let s = CameraSample {
+                x: 0,
+                y: 0,
+                index,
+                origin: Vec3::new(63.3, 64.2, 300.0),
+                dir: -Vec3::Z,
+            };
+            let v = tracer.trace(s, &mut stats).direct[0] as f64;
+            sum += v;
+            sum2 += v * v;
+        }
+        let tau = sigma_t as f64 * 128.0;
+        let want = (albedo * e) as f64 * PHASE * (1.0 - (-2.0 * tau).exp()) / 2.0;
+        let mean = sum / n as f64;
+        let std_error = ((sum2 / n as f64 - mean * mean) / n as f64).sqrt();
+        assert!(std_error < 0.02 * want, "{std_error}");
+        assert!((mean - want).abs() < 4.0 * std_error, "{mean} vs {want}");
     }
 
     #[test]
