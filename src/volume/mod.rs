@@ -6,6 +6,7 @@ pub(crate) mod dda;
 mod field;
 pub mod grid;
 mod sampler;
+pub mod shadow;
 pub(crate) mod transmittance;
 pub mod vdb;
 
