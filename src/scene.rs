@@ -3,6 +3,7 @@
 //! under a [`Lighting`]. `render`, and any other front end, calls these and nothing below them.
 
 use std::path::Path;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use indicatif::ProgressBar;
@@ -10,6 +11,7 @@ use indicatif::ProgressBar;
 use crate::error::Result;
 use crate::light::Lighting;
 use crate::pathtrace::{Medium3d, PathStats, PathTracer};
+use crate::render::sunlight::SunLight;
 use crate::render::{self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats};
 use crate::transfer::cache::{self, Source};
 use crate::transfer::memory::BakePlan;
@@ -39,6 +41,20 @@ pub struct Scene {
     /// Seconds spent reading the input and building the density's accelerators.
     pub read_seconds: f64,
     pub field_seconds: f64,
+    /// The suns' shadow volumes and lattice solves, kept while a sun does not move: another
+    /// camera, or another environment with the same sun, reuses them.
+    sun_lights: Mutex<Vec<Arc<SunLight>>>,
+}
+
+/// What the suns of one render cost, for `--stats`.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SunReport {
+    /// Suns whose light was built for this render (the rest were kept from an earlier one).
+    pub built: usize,
+    pub shadow_seconds: f64,
+    pub lattice_seconds: f64,
+    /// Bytes held by the suns' shadow volumes and fluences.
+    pub bytes: u64,
 }
 
 impl Scene {
@@ -66,6 +82,7 @@ impl Scene {
             source,
             read_seconds,
             field_seconds: clock.elapsed().as_secs_f64(),
+            sun_lights: Mutex::new(Vec::new()),
         })
     }
 
@@ -88,6 +105,7 @@ impl Scene {
             && (h.coefficients == "f16") == config.half;
         if same {
             self.transfer = Some(c.transfer);
+            self.forget_suns();
         }
         Ok(same)
     }
@@ -104,6 +122,7 @@ impl Scene {
             crate::transfer::bake(&self.field, config.medium, &config.settings, quiet);
         self.medium = config.medium;
         self.transfer = Some(transfer);
+        self.forget_suns();
         stats
     }
 
@@ -159,23 +178,66 @@ impl Scene {
         background: bool,
         settings: &MarchSettings,
         progress: &ProgressBar,
-    ) -> Result<(Frame, MarchStats, render::RenderReport)> {
+    ) -> Result<(Frame, MarchStats, render::RenderReport, SunReport)> {
         let Some(transfer) = &self.transfer else {
             return Err(crate::Error::Runtime(
                 "the scene has no transfer: bake it first".into(),
             ));
         };
+        let (lights, suns) = self.sun_lights(transfer, lighting);
+        let refs: Vec<&SunLight> = lights.iter().map(|l| l.as_ref()).collect();
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
-        Ok(render::render_volume(
+        let (frame, stats, report) = render::render_volume(
             &self.field,
             transfer,
             lighting,
+            &refs,
             background,
             camera,
             settings,
             progress,
-        ))
+        );
+        Ok((frame, stats, report, suns))
+    }
+
+    /// Drops the kept suns' light: it was built on the transfer now replaced.
+    fn forget_suns(&mut self) {
+        self.sun_lights
+            .get_mut()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
+    }
+
+    /// The light of each of `lighting.suns`: kept from an earlier render where the sun has not
+    /// moved, else built now.
+    fn sun_lights(
+        &self,
+        transfer: &Transfer,
+        lighting: &Lighting,
+    ) -> (Vec<Arc<SunLight>>, SunReport) {
+        let mut kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
+        let mut report = SunReport::default();
+        let lights: Vec<Arc<SunLight>> = lighting
+            .suns
+            .iter()
+            .map(|sun| {
+                if let Some(l) = kept
+                    .iter()
+                    .find(|l| l.is_for(sun.direction, transfer.medium))
+                {
+                    return l.clone();
+                }
+                let light = Arc::new(SunLight::build(&self.field, transfer, sun.direction));
+                report.built += 1;
+                report.shadow_seconds += light.shadow_seconds;
+                report.lattice_seconds += light.lattice_seconds;
+                kept.push(light.clone());
+                light
+            })
+            .collect();
+        report.bytes = lights.iter().map(|l| l.memory_bytes()).sum();
+        (lights, report)
     }
 
     /// Path-traces the density under `lighting`: the ground truth the transfer is measured against.

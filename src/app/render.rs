@@ -137,7 +137,7 @@ fn transfer(
         spp: view.spp,
         ..MarchSettings::default()
     };
-    let (frame, march, report) = scene.render(
+    let (frame, march, report, suns) = scene.render(
         view.camera,
         view.lighting,
         view.background,
@@ -149,6 +149,10 @@ fn transfer(
     stats["env_seconds"] =
         json!(stats["env_seconds"].as_f64().unwrap_or(0.0) + report.project.as_secs_f64());
     stats["relight_seconds"] = json!(report.relight.as_secs_f64());
+    stats["suns"] = json!(view.lighting.suns.len());
+    stats["sun_shadow_seconds"] = json!(suns.shadow_seconds);
+    stats["sun_lattice_seconds"] = json!(suns.lattice_seconds);
+    stats["sun_bytes"] = json!(suns.bytes);
     stats["march_seconds"] = json!(report.march.as_secs_f64());
     stats["rays"] = json!(march.rays);
     stats["samples_taken"] = json!(march.samples_taken);

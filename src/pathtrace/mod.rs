@@ -42,8 +42,9 @@ pub const ROULETTE_AFTER: u32 = 3;
 /// escaping, after ~τ² scatterings in a medium τ thick; this bounds the time of absurd inputs
 /// (τ ≈ 300) at a bias far below the noise of any practical render.
 pub const MAX_PATH_SCATTERINGS: u32 = 100_000;
-/// The isotropic phase function, 1/(4π), also the density of uniform direction sampling.
-const PHASE: f64 = 1.0 / (4.0 * PI);
+/// The phase function ([`crate::transfer::PHASE`], isotropic), also the density of uniform
+/// direction sampling.
+const PHASE: f64 = crate::transfer::PHASE as f64;
 
 /// What `--method pathtrace` needs besides the camera.
 pub struct PathTracer<'a> {

@@ -6,6 +6,7 @@ pub(crate) mod camera;
 pub(crate) mod film;
 mod march;
 mod relight;
+pub mod sunlight;
 
 use std::time::{Duration, Instant};
 
@@ -21,8 +22,9 @@ use relight::relight;
 use crate::error::Result;
 use crate::io::image::{ImageBuf, Layer};
 use crate::light::Lighting;
-use crate::transfer::Transfer;
+use crate::transfer::{Transfer, PHASE};
 use crate::volume::{DensityField, SparseGrid};
+use sunlight::SunLight;
 
 /// The camera flags of `render`: an explicit pose, or `position: None` for automatic framing.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -88,11 +90,14 @@ pub struct RenderReport {
 }
 
 /// Relights `transfer` under `lighting` and marches `field` as `camera` sees it, with
-/// `background` behind the volume (`None`: alpha); `progress` counts image tiles.
+/// `background` behind the volume (`None`: alpha); `progress` counts image tiles. `suns` holds
+/// the light of each of `lighting.suns`, in order.
+#[allow(clippy::too_many_arguments)]
 pub fn render_volume(
     field: &DensityField,
     transfer: &Transfer,
     lighting: &Lighting,
+    suns: &[&SunLight],
     background: Option<Background>,
     camera: &Camera,
     settings: &MarchSettings,
@@ -102,8 +107,26 @@ pub fn render_volume(
     let env_coeffs = lighting.sh_coefficients(transfer.bands);
     let project = t.elapsed();
     let t = Instant::now();
-    let radiance = relight(transfer, &env_coeffs);
-    let source = march::TransferRadiance::new(&transfer.layout, &radiance);
+    let mut radiance = relight(transfer, &env_coeffs);
+    // Each sun's multiple scattering joins the nodes' indirect light (p·F·E); its single
+    // scattering is marched from its shadow volume.
+    for (light, sun) in suns.iter().zip(&lighting.suns) {
+        if let Some(fluence) = &light.multiple {
+            for (node, f) in radiance.indirect.iter_mut().zip(fluence) {
+                for (c, e) in node.iter_mut().zip(sun.irradiance) {
+                    *c += PHASE * f * e;
+                }
+            }
+        }
+    }
+    let source = (
+        march::TransferRadiance::new(&transfer.layout, &radiance),
+        march::SunRadiance::new(
+            suns.iter()
+                .zip(&lighting.suns)
+                .map(|(light, sun)| (&light.shadow, sun.irradiance)),
+        ),
+    );
     let relight_time = t.elapsed();
     let t = Instant::now();
     let scene = Scene::new(field, transfer.medium, &source, background);
@@ -236,6 +259,7 @@ mod tests {
             },
             t_ri: dc(0.5 * sqrt_4pi),
             f_ms: dc(0.5 * sqrt_4pi),
+            lattice: None,
         };
         let c = [0.5f32, 1.0, 2.0];
         let lighting = Lighting {

@@ -5,15 +5,13 @@
 
 use rayon::prelude::*;
 
-use crate::transfer::Transfer;
+use crate::transfer::{Transfer, PHASE};
 
 /// Slots per rayon task: large enough that scheduling costs nothing next to the dot products.
 const SLOTS_PER_TASK: usize = 1024;
 
 /// Independent partial sums per dot product: eight f32 lanes fill one AVX or two SSE registers.
 const LANES: usize = 8;
-/// 1/(4π): the isotropic phase function.
-const INV_4PI: f32 = 1.0 / (4.0 * std::f32::consts::PI);
 
 /// RGB in-scattered radiance per transfer voxel (slot order of the transfer layout).
 #[derive(Debug, Clone, PartialEq)]
@@ -62,7 +60,7 @@ pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
             }
             let tail: f32 = t[split..].iter().zip(&e[split..]).map(|(a, b)| a * b).sum();
             let sum = lanes.iter().sum::<f32>() + tail;
-            sum * INV_4PI
+            sum * PHASE
         })
     };
     let per_slot = |all: &[f32]| -> Vec<[f32; 3]> {
@@ -115,6 +113,7 @@ mod tests {
             },
             t_ri,
             f_ms,
+            lattice: None,
         }
     }
 

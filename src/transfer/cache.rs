@@ -475,6 +475,7 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
         },
         t_ri,
         f_ms,
+        lattice: (!settings.single_scatter).then_some(settings.lattice),
     };
     Ok(Cache {
         header,
@@ -501,6 +502,7 @@ mod tests {
             },
             t_ri: (0..n).map(|i| i as f32 * 0.25).collect(),
             f_ms: (0..n).map(|i| -(i as f32)).collect(),
+            lattice: Some(LatticeKind::All),
         };
         let settings = BakeSettings {
             bands: 2,

@@ -427,21 +427,34 @@ fn segment(acc: &mut BrickSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) 
     }
 }
 
-/// Runs generation 0 (the environment's inflow) and then the scattered generations for
-/// coefficients `[c0, c0 + width)`; stops by the energy criterion when `generations` is `None`
-/// (the chunk holding the DC term), else runs exactly that many scattered generations.
+/// What drives the transport: the environment entering at the boundary (generation 0, then the
+/// scattered generations, for coefficients `[c0, c0 + width)`), or the first scattering already
+/// known per node (a sun's, gathered from its exact shadow: one right-hand side).
+enum Drive<'a> {
+    Environment { c0: usize, width: usize },
+    Emission(&'a [f32]),
+}
+
+/// Transports one drive; stops by the energy criterion when `generations` is `None` (the chunk
+/// holding the DC term, or a sun), else runs exactly that many scattered generations.
 fn transport_chunk(
     links: &Links,
     first: &Source,
-    c0: usize,
-    width: usize,
+    drive: Drive,
     generations: Option<usize>,
 ) -> (Vec<f32>, LatticeStats) {
     let (coeffs, albedo) = (first.bands * first.bands, first.medium.albedo);
     let n = links.order[0].len();
     let d = links.dirs.len();
+    let (c0, width) = match drive {
+        Drive::Environment { c0, width } => (c0, width),
+        Drive::Emission(_) => (0, 1),
+    };
     let mut fluence = vec![0f32; n * width];
-    let mut emit = vec![0f32; n * width];
+    let mut emit = match drive {
+        Drive::Environment { .. } => vec![0f32; n * width],
+        Drive::Emission(q) => q.to_vec(),
+    };
     let mut next = vec![0f32; n * width];
     let mut incoming = vec![0f32; n * width];
     let mut stats = LatticeStats {
@@ -450,7 +463,11 @@ fn transport_chunk(
     };
     let mut previous = 0.0f64;
     let limit = generations.unwrap_or(MAX_GENERATIONS);
-    for generation in 0..=limit {
+    let start = match drive {
+        Drive::Environment { .. } => 0,
+        Drive::Emission(_) => 1,
+    };
+    for generation in start..=limit {
         // Generation 0 is the unscattered light: it enters from the environment, emits nothing
         // (`emit` starts at zero) and is not read out, since T_ri stands for it.
         let inflow = generation == 0;
@@ -544,10 +561,11 @@ pub fn bake_multiple(
         .collect();
     // The chunk holding the DC term decides the generation count by energy; the operator is the
     // same for every coefficient, so the other chunks run exactly as many generations.
-    let (head, stats) = transport_chunk(&links, first, 0, chunks[0].1, None);
+    let drive = |(c0, width)| Drive::Environment { c0, width };
+    let (head, stats) = transport_chunk(&links, first, drive(chunks[0]), None);
     let rest: Vec<Vec<f32>> = chunks[1..]
         .par_iter()
-        .map(|&(c0, w)| transport_chunk(&links, first, c0, w, Some(stats.generations)).0)
+        .map(|&c| transport_chunk(&links, first, drive(c), Some(stats.generations)).0)
         .collect();
     let mut f_ms = vec![0f32; n * coeffs];
     for (&(c0, w), part) in chunks.iter().zip(std::iter::once(&head).chain(&rest)) {
@@ -556,6 +574,29 @@ pub fn bake_multiple(
         }
     }
     (f_ms, stats)
+}
+
+/// The multiply scattered fluence of light whose first scattering is known: `emission[x]` is the
+/// power node x scatters per cell volume (albedo × collision density, e.g. σs·Tr_sun·E of a sun
+/// at E = 1). Returns the fluence per node of light scattered once or more — that first
+/// scattering included, as it leaves its cell — and the lattice's statistics; `energy_single` is
+/// then Σ emission. Non-negative wherever the emission is.
+pub fn solve_emission(
+    field: &DensityField,
+    layout: &TransferLayout,
+    kind: LatticeKind,
+    medium: Medium,
+    emission: &[f32],
+) -> (Vec<f32>, LatticeStats) {
+    let links = build_links(field, layout, medium, Directions::new(kind), 1);
+    // The energy criterion weighs what remains against the total: the first scattering stands
+    // for the "single" part here (only its DC term is read, one per node).
+    let first = Source {
+        t_ri: emission,
+        bands: 1,
+        medium,
+    };
+    transport_chunk(&links, &first, Drive::Emission(emission), None)
 }
 
 #[cfg(test)]

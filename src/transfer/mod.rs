@@ -24,6 +24,10 @@ pub struct Medium {
     pub albedo: f32,
 }
 
+/// The phase function: isotropic, p = 1/(4π) per steradian. Relighting, the suns' in-scatter and
+/// the path tracer all take it from here.
+pub const PHASE: f32 = 1.0 / (4.0 * std::f32::consts::PI);
+
 /// A baked transfer over a sparse layout: `bands²` coefficients per voxel, voxel after voxel.
 #[derive(Clone)]
 pub struct Transfer {
@@ -34,6 +38,9 @@ pub struct Transfer {
     pub t_ri: Vec<f32>,
     /// Multiply-scattered transfer F_ms (zero after a `--single-scatter` bake), same shape.
     pub f_ms: Vec<f32>,
+    /// The lattice that solved F_ms, and that solves the suns' multiple scattering (`None`: the
+    /// bake was `--single-scatter`, and so is the suns' light).
+    pub lattice: Option<lattice::LatticeKind>,
 }
 
 impl Transfer {
@@ -140,6 +147,7 @@ pub fn bake(
         medium,
         t_ri,
         f_ms,
+        lattice: (!settings.single_scatter).then_some(settings.lattice),
     };
     (transfer, stats)
 }

@@ -200,13 +200,31 @@ impl ShadowVolume {
         Some(self.depths[i as usize][local_index(voxel - key * BLOCK)])
     }
 
-    /// A reader for one ray: remembers the last brick.
-    pub fn reader(&self) -> ShadowReader<'_> {
-        ShadowReader {
-            volume: self,
-            key: None,
-            brick: None,
+    /// Optical depth toward the light at index point `p`, trilinear; `cursor` remembers the
+    /// last brick of a ray. Asked only where the density is non-zero, where a brick always
+    /// exists (module doc); elsewhere it reads 0.
+    #[inline]
+    pub fn optical_depth(&self, p: Vec3, cursor: &mut ShadowCursor) -> f32 {
+        let (cell, f) = floor_split(p);
+        let key = cell >> LEAF_LOG2 as i32;
+        if cursor.key != Some(key) {
+            cursor.key = Some(key);
+            cursor.brick = self.entries.get(&key).copied();
         }
+        let Some(b) = cursor.brick else {
+            return 0.0;
+        };
+        let brick = &self.depths[b as usize];
+        let i = local_index(cell - key * BLOCK);
+        let g = Vec3::ONE - f;
+        let at = |o: usize| brick[i + o];
+        const X: usize = DIM * DIM;
+        const Y: usize = DIM;
+        let c00 = at(0) * g.z + at(1) * f.z;
+        let c01 = at(Y) * g.z + at(Y + 1) * f.z;
+        let c10 = at(X) * g.z + at(X + 1) * f.z;
+        let c11 = at(X + Y) * g.z + at(X + Y + 1) * f.z;
+        (c00 * g.y + c01 * f.y) * g.x + (c10 * g.y + c11 * f.y) * f.x
     }
 
     /// Bytes held.
@@ -228,42 +246,11 @@ impl ShadowVolume {
     }
 }
 
-/// Trilinear optical depth along one ray.
-pub struct ShadowReader<'a> {
-    volume: &'a ShadowVolume,
+/// The brick a ray read last, so a lookup in the same block needs no hash.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ShadowCursor {
     key: Option<IVec3>,
-    brick: Option<&'a [f32; BRICK_VOXELS]>,
-}
-
-impl ShadowReader<'_> {
-    /// Optical depth toward the light at index point `p`. Asked only where the density is
-    /// non-zero, where a brick always exists (module doc); elsewhere it reads 0.
-    #[inline]
-    pub fn optical_depth(&mut self, p: Vec3) -> f32 {
-        let (cell, f) = floor_split(p);
-        let key = cell >> LEAF_LOG2 as i32;
-        if self.key != Some(key) {
-            self.key = Some(key);
-            self.brick = self
-                .volume
-                .entries
-                .get(&key)
-                .map(|&i| &self.volume.depths[i as usize]);
-        }
-        let Some(brick) = self.brick else {
-            return 0.0;
-        };
-        let i = local_index(cell - key * BLOCK);
-        let g = Vec3::ONE - f;
-        let at = |o: usize| brick[i + o];
-        const X: usize = DIM * DIM;
-        const Y: usize = DIM;
-        let c00 = at(0) * g.z + at(1) * f.z;
-        let c01 = at(Y) * g.z + at(Y + 1) * f.z;
-        let c10 = at(X) * g.z + at(X + 1) * f.z;
-        let c11 = at(X + Y) * g.z + at(X + Y + 1) * f.z;
-        (c00 * g.y + c01 * f.y) * g.x + (c10 * g.y + c11 * f.y) * f.x
-    }
+    brick: Option<u32>,
 }
 
 /// Blocks that get a brick: every B with an occupied block in B + {0,1}³, sorted x-major.

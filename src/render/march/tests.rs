@@ -11,6 +11,9 @@ struct Pointwise<F>(F);
 
 impl<F: Fn(Vec3) -> [[f32; 3]; 2] + Sync> InScatter for Pointwise<F> {
     type Sum = [[f32; 3]; 2];
+    fn start(&self) -> Self::Sum {
+        [[0.0; 3]; 2]
+    }
     fn add(&self, p: Vec3, c: f32, sum: &mut Self::Sum) {
         let ls = (self.0)(p);
         for part in 0..2 {
