@@ -276,6 +276,7 @@ mod tests {
             &field,
             &transfer,
             &lighting,
+            &[],
             Some(&bg),
             &cam,
             &MarchSettings::default(),
