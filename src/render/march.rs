@@ -31,6 +31,7 @@ use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout, PHASE};
 use crate::volume::grid::corner;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
+use crate::volume::bricks::BrickSampler;
 use crate::volume::DensityField;
 
 /// Stop marching when less than this fraction of the background still shows through. The rest of
@@ -92,13 +93,18 @@ impl<A: InScatter, B: InScatter> InScatter for (A, B) {
 /// Ls(p) = Σ_suns p·E·e^{−τ_sun(p)}, τ_sun read from each sun's [`ShadowVolume`]. It is the
 /// `direct` layer; the suns' multiple scattering comes through the transfer's nodes.
 pub struct SunRadiance<'a> {
+    field: &'a DensityField,
     /// Each sun's shadow and its p·E per channel.
     suns: Vec<(&'a ShadowVolume, [f32; 3])>,
 }
 
 impl<'a> SunRadiance<'a> {
-    pub fn new(suns: impl IntoIterator<Item = (&'a ShadowVolume, [f32; 3])>) -> Self {
+    pub fn new(
+        field: &'a DensityField,
+        suns: impl IntoIterator<Item = (&'a ShadowVolume, [f32; 3])>,
+    ) -> Self {
         SunRadiance {
+            field,
             suns: suns
                 .into_iter()
                 .map(|(v, e)| (v, e.map(|e| e * PHASE)))
@@ -107,33 +113,36 @@ impl<'a> SunRadiance<'a> {
     }
 }
 
-/// A ray's sum for [`SunRadiance`]: one shadow cursor per sun and the direct RGB so far.
-pub struct SunSum {
+/// A ray's sum for [`SunRadiance`]: a density sampler, one shadow cursor per sun and the direct
+/// RGB so far.
+pub struct SunSum<'a> {
+    sampler: BrickSampler<'a>,
     cursors: Vec<ShadowCursor>,
     direct: [f32; 3],
 }
 
-impl InScatter for SunRadiance<'_> {
-    type Sum = SunSum;
+impl<'a> InScatter for SunRadiance<'a> {
+    type Sum = SunSum<'a>;
 
-    fn start(&self) -> SunSum {
+    fn start(&self) -> SunSum<'a> {
         SunSum {
+            sampler: self.field.sampler(),
             cursors: vec![ShadowCursor::default(); self.suns.len()],
             direct: [0.0; 3],
         }
     }
 
     #[inline]
-    fn add(&self, p: Vec3, c: f32, sum: &mut SunSum) {
+    fn add(&self, p: Vec3, c: f32, sum: &mut SunSum<'a>) {
         for ((volume, e), cursor) in self.suns.iter().zip(&mut sum.cursors) {
-            let w = c * (-volume.optical_depth(p, cursor)).exp();
+            let w = c * (-volume.optical_depth(p, &mut sum.sampler, cursor)).exp();
             for (d, e) in sum.direct.iter_mut().zip(e) {
                 *d += w * e;
             }
         }
     }
 
-    fn total(&self, sum: SunSum) -> [[f32; 3]; 2] {
+    fn total(&self, sum: SunSum<'a>) -> [[f32; 3]; 2] {
         [sum.direct, [0.0; 3]]
     }
 }

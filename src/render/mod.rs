@@ -122,6 +122,7 @@ pub fn render_volume(
     let source = (
         march::TransferRadiance::new(&transfer.layout, &radiance),
         march::SunRadiance::new(
+            field,
             suns.iter()
                 .zip(&lighting.suns)
                 .map(|(light, sun)| (&light.shadow, sun.irradiance)),

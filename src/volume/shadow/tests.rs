@@ -30,17 +30,18 @@ fn a_uniform_tile_along_an_axis_has_the_exact_chord_depth() {
     let sigma_t = 0.02;
     let vol = ShadowVolume::build(&field, sigma_t, Vec3::X);
     let mut r = ShadowCursor::default();
+    let mut sampler = field.sampler();
     for x in [0, 5, 64, 120, 127] {
         let p = Vec3::new(x as f32, 40.0, 77.0);
         let want = sigma_t * ((127 - x) as f32 + 0.5);
-        let got = vol.optical_depth(p, &mut r);
+        let got = vol.optical_depth(p, &mut sampler, &mut r);
         assert!(
             (got - want).abs() < 1e-4 * want.max(1.0),
             "x {x}: {got} vs {want}"
         );
     }
     // Between voxels the depth is trilinear: halfway is the mean.
-    let mid = vol.optical_depth(Vec3::new(10.5, 3.25, 9.0), &mut r);
+    let mid = vol.optical_depth(Vec3::new(10.5, 3.25, 9.0), &mut sampler, &mut r);
     assert!((mid - sigma_t * 117.0).abs() < 1e-4, "{mid}");
 }
 
@@ -56,13 +57,14 @@ fn oblique_light_matches_a_fine_ray_march() {
         let dir = dir.normalize();
         let vol = ShadowVolume::build(&field, sigma_t, dir);
         let mut r = ShadowCursor::default();
+        let mut sampler = field.sampler();
         for p in [
             Vec3::new(64.0, 64.0, 64.0),
             Vec3::new(3.5, 120.25, 17.0),
             Vec3::new(100.0, 10.0, 126.5),
         ] {
             let want = marched(&field, sigma_t, p, dir);
-            let got = vol.optical_depth(p, &mut r);
+            let got = vol.optical_depth(p, &mut sampler, &mut r);
             // Bilinear resampling per slice is exact for a uniform field; what remains is the
             // faces' ramps, crossed obliquely.
             assert!(
@@ -83,8 +85,9 @@ fn a_gap_still_carries_the_shadow_of_what_lies_beyond_it() {
     let sigma_t = 0.1;
     let vol = ShadowVolume::build(&field, sigma_t, Vec3::Y);
     let mut r = ShadowCursor::default();
+    let mut sampler = field.sampler();
     // From the lower tile's top voxel: ½ voxel of its own ramp, then the whole upper tile (8).
-    let got = vol.optical_depth(Vec3::new(4.0, 7.0, 4.0), &mut r);
+    let got = vol.optical_depth(Vec3::new(4.0, 7.0, 4.0), &mut sampler, &mut r);
     let want = sigma_t * (0.5 + 8.0);
     assert!((got - want).abs() < 0.02 * want, "{got} vs {want}");
 }
@@ -141,7 +144,7 @@ fn smooth_density_agrees_with_ray_marching_where_the_density_is() {
             continue;
         }
         // Compare transmittances: what the render multiplies by.
-        let err = ((-vol.optical_depth(p, &mut r)).exp()
+        let err = ((-vol.optical_depth(p, &mut sampler, &mut r)).exp()
             - (-marched(&field, sigma_t, p, dir)).exp())
         .abs();
         worst = worst.max(err);
