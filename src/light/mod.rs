@@ -4,6 +4,7 @@
 
 pub mod env;
 pub(crate) mod envlight;
+pub mod extract;
 pub mod sh;
 pub mod sun;
 
