@@ -272,6 +272,10 @@ pub struct RenderArgs {
     /// scatters C·albedo (irradiance 4π·C) [default colour: 0.7]. Repeatable.
     #[arg(long, value_name = "X,Y,Z[,R,G,B]", allow_hyphen_values = true)]
     pub light: Vec<String>,
+    /// Leave a sun in an HDRI as pixels of the map instead of turning it into a light with exact
+    /// shadows.
+    #[arg(long)]
+    pub no_extract_sun: bool,
     /// Image size.
     #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_resolution)]
     pub res: (u32, u32),
@@ -344,6 +348,7 @@ impl RenderArgs {
             scale: self.env_scale,
             window: self.window,
             suns,
+            extract_sun: !self.no_extract_sun,
         })
     }
 

@@ -32,6 +32,11 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     let clock = Instant::now();
     let lighting = Lighting::load(&args.env, &light_options)?;
     let env_seconds = clock.elapsed().as_secs_f64();
+    if let Some(Ok(found)) = &lighting.sun_search {
+        if !global.quiet {
+            eprintln!("{}: {found}", args.env);
+        }
+    }
     let camera = scene.camera(&spec)?;
     let mut stats = json!({
         "command": "render",
@@ -39,6 +44,10 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         "read_seconds": scene.read_seconds,
         "field_seconds": scene.field_seconds,
         "env_seconds": env_seconds,
+        "sun_search": lighting.sun_search.as_ref().map(|r| match r {
+            Ok(found) => found,
+            Err(none) => none,
+        }),
         "active_voxels": scene.field.grid.active_voxels(),
         "brick_bytes": scene.field.accelerator_bytes(),
     });

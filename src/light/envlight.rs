@@ -112,6 +112,7 @@ mod tests {
             scale,
             window: Window::None,
             suns: Vec::new(),
+            sun_search: None,
         }
     }
 

@@ -30,6 +30,9 @@ pub struct Lighting {
     /// Directional lights, world space, final irradiance (the map's own sun turned and scaled
     /// with the map). They are not in `env`: the SH part never sees them.
     pub suns: Vec<Sun>,
+    /// What the search for a sun in the map found, one line: `Ok` a sun taken out of the map,
+    /// `Err` why none was (`None`: no search was made).
+    pub sun_search: Option<std::result::Result<String, String>>,
 }
 
 /// How to light a render besides the map itself.
@@ -42,6 +45,8 @@ pub struct LightOptions {
     pub window: Window,
     /// Suns given by the user, world space, not scaled. With the built-in sky they replace its sun.
     pub suns: Vec<Sun>,
+    /// Look for a sun in a map file and turn it into a light ([`extract`]).
+    pub extract_sun: bool,
 }
 
 impl Lighting {
@@ -55,9 +60,22 @@ impl Lighting {
             scale: options.scale,
             window: options.window,
             suns: Vec::new(),
+            sun_search: None,
         };
         if sky && options.suns.is_empty() {
             lighting.add_map_sun(env::sky_sun());
+        }
+        if !sky && options.extract_sun {
+            let search = extract::find_sun(&lighting.env);
+            let line = search.describe();
+            lighting.sun_search = Some(match search {
+                extract::SunSearch::Found { sun, residual, .. } => {
+                    lighting.env = residual;
+                    lighting.add_map_sun(sun);
+                    Ok(line)
+                }
+                extract::SunSearch::None(_) => Err(line),
+            });
         }
         lighting.suns.extend_from_slice(&options.suns);
         if lighting.suns.len() > MAX_SUNS {
@@ -139,6 +157,7 @@ mod tests {
             scale: 3.0,
             window: Window::None,
             suns: Vec::new(),
+            sun_search: None,
         };
         for d in [
             Vec3::new(0.3, 0.5, -0.8),
@@ -176,6 +195,7 @@ mod tests {
             scale: 2.0,
             window: Window::Hamming,
             suns: Vec::new(),
+            sun_search: None,
         };
         let coeffs = lighting.sh_coefficients(3);
         // L = c: c_00 = ∫ c·Y00 dω = c·√(4π), times the scale; the turn and window keep band 0.

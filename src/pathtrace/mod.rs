@@ -246,6 +246,7 @@ mod tests {
             scale: 1.0,
             window: Window::None,
             suns: Vec::new(),
+            sun_search: None,
         };
         let light = lighting.sampler();
         let tracer = PathTracer {
@@ -307,6 +308,7 @@ mod tests {
             scale: 1.0,
             window: Window::None,
             suns: Vec::new(),
+            sun_search: None,
         };
         let light = lighting.sampler();
         let sigma_t = 0.01f32;
@@ -356,6 +358,7 @@ mod tests {
             scale: 1.0,
             window: Window::None,
             suns: Vec::new(),
+            sun_search: None,
         };
         let light = lighting.sampler();
         let (sigma_t, albedo, e) = (0.01f32, 0.8f32, 3.0f32);

@@ -29,9 +29,9 @@ use crate::render::camera::{Camera, STREAM_STEP};
 use crate::render::film::{self, Background, Frame, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout, PHASE};
+use crate::volume::bricks::BrickSampler;
 use crate::volume::grid::corner;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
-use crate::volume::bricks::BrickSampler;
 use crate::volume::DensityField;
 
 /// Stop marching when less than this fraction of the background still shows through. The rest of
