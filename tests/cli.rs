@@ -9,6 +9,8 @@ mod env;
 mod pathtrace;
 #[path = "cli/render.rs"]
 mod render;
+#[path = "cli/sun.rs"]
+mod sun;
 #[path = "cli/vdb.rs"]
 mod vdb;
 

@@ -1,0 +1,123 @@
+//! Suns on the command line: `--sun`, `--light`, the built-in sky's sun, a sun found in an HDRI,
+//! and bad lights refused in one line.
+
+use crate::{assert_clean_failure, fixture, stderr, vscatter_in};
+
+/// A small, quick render of the cloud fixture.
+const QUICK: [&str; 10] = [
+    "--res",
+    "48x27",
+    "--bands",
+    "3",
+    "--scale",
+    "4",
+    "--samples",
+    "64",
+    "--sigma-t",
+    "0.3",
+];
+
+fn render(dir: &std::path::Path, out: &str, extra: &[&str]) -> std::process::Output {
+    let input = fixture("cloud.vdb");
+    let mut args = vec!["render", input.to_str().unwrap(), "-o", out];
+    args.extend_from_slice(&QUICK);
+    args.extend_from_slice(extra);
+    vscatter_in(dir, &args)
+}
+
+#[test]
+fn bad_suns_are_refused_in_one_line_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let nine: Vec<&str> = std::iter::repeat_n(["--sun", "0,1,0"], 9)
+        .flatten()
+        .collect();
+    let cases: [(&[&str], &str); 6] = [
+        (&["--sun", "0,0,0"], "--sun 0,0,0"),
+        (&["--sun", "nan,1,0"], "--sun nan,1,0"),
+        (&["--sun", "0,1,0,1,-1,1"], "--sun 0,1,0,1,-1,1"),
+        (&["--sun", "0,1,0,1,1,inf"], "--sun 0,1,0,1,1,inf"),
+        (&["--light", "1,2"], "--light 1,2"),
+        (&nine, "at most 8"),
+    ];
+    for (extra, names) in cases {
+        assert_clean_failure(&render(dir.path(), "x.png", extra), 2, names);
+    }
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
+
+/// Mean of the `direct.R` channel over the image.
+fn mean_direct(path: &std::path::Path) -> f64 {
+    use exr::prelude::*;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .unwrap();
+    let red = image
+        .layer_data
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == "direct.R")
+        .expect("a direct layer");
+    let values: Vec<f32> = red.sample_data.values_as_f32().collect();
+    values.iter().map(|v| *v as f64).sum::<f64>() / values.len() as f64
+}
+
+#[test]
+fn a_sun_lights_the_direct_layer_and_light_means_what_vdb_render_means() {
+    let dir = tempfile::tempdir().unwrap();
+    // Black environment: all the light is the sun's.
+    let black = ["--env", "sky", "--env-scale", "0", "--single-scatter"];
+    let sun: Vec<&str> = black
+        .iter()
+        .copied()
+        .chain(["--sun", "0.3,0.3,0,1,1,1"])
+        .collect();
+    assert!(render(dir.path(), "sun.exr", &sun).status.success());
+    // vdb_render's colour C is an irradiance of 4π·C.
+    let c = 1.0 / (4.0 * std::f64::consts::PI);
+    let spec = format!("0.3,0.3,0,{c},{c},{c}");
+    let light: Vec<&str> = black.iter().copied().chain(["--light", &spec]).collect();
+    assert!(render(dir.path(), "light.exr", &light).status.success());
+    assert!(render(dir.path(), "none.exr", &black).status.success());
+    let (s, l, n) = (
+        mean_direct(&dir.path().join("sun.exr")),
+        mean_direct(&dir.path().join("light.exr")),
+        mean_direct(&dir.path().join("none.exr")),
+    );
+    assert_eq!(n, 0.0);
+    assert!(
+        s > 0.0 && (l - s).abs() < 1e-5 * s,
+        "--sun {s}, --light {l}"
+    );
+}
+
+#[test]
+fn the_sun_of_an_hdri_is_found_and_said_unless_asked_not_to() {
+    let dir = tempfile::tempdir().unwrap();
+    let env = fixture("env/sky_sun.exr");
+    let env = env.to_str().unwrap();
+    let out = render(dir.path(), "a.png", &["--env", env]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(
+        err.lines()
+            .any(|l| l.contains("sun found at elevation 35.0°")),
+        "{err}"
+    );
+    let out = render(dir.path(), "b.png", &["--env", env, "--no-extract-sun"]);
+    assert!(out.status.success());
+    assert!(!stderr(&out).contains("sun found"), "{}", stderr(&out));
+    // A studio map has no sun; nothing is said.
+    let studio = fixture("env/studio.exr");
+    let out = render(dir.path(), "c.png", &["--env", studio.to_str().unwrap()]);
+    assert!(
+        out.status.success() && !stderr(&out).contains("sun"),
+        "{}",
+        stderr(&out)
+    );
+}
