@@ -99,8 +99,8 @@ fn first_scattering(
                         let p = (base + IVec3::new(x, y, z)).as_vec3();
                         let rho = sampler.sample(p);
                         if rho > 0.0 {
-                            sum +=
-                                rho * (-shadow.optical_depth(p, &mut sampler, &mut cursor)).exp();
+                            sum += rho
+                                * (-shadow.optical_depth(p, rho, &mut sampler, &mut cursor)).exp();
                         }
                     }
                 }

@@ -22,13 +22,13 @@
 //! brick slice), so light crossing a gap between two parts of a cloud still carries the first
 //! part's shadow.
 //!
-//! **Lookups.** A point p between slices takes the segment from p to the next slice toward the
-//! light, integrated through the density, plus the depth where it meets that slice, bilinear
-//! between the slice's four voxels: the **optical depth** is interpolated, never the
-//! transmittance, and only across the light, never along it. Along the light the depth inside a
-//! lit surface grows as the square of the distance through the density's one-voxel ramp, and a
-//! straight line between two voxels' depths put the sunlit side of a cloud 10 % too dark at one
-//! optical depth per voxel.
+//! **Lookups.** A point p between slices walks toward the light to the next slice, and on for up
+//! to [`WALK_SLICES`] while it is inside the medium, integrating the density; it adds the depth
+//! where it lands, bilinear between that slice's four voxels. The **optical depth** is
+//! interpolated, never the transmittance, and only across the light, never along it: along the
+//! light the depth inside a lit surface grows as the square of the distance through the
+//! density's one-voxel ramp, and a straight line between two voxels' depths put the sunlit side of
+//! a cloud 10 % too dark at one optical depth per voxel.
 
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
@@ -67,6 +67,18 @@ pub struct ShadowVolume {
     entries: HashMap<IVec3, u32>,
     depths: Vec<[f32; BRICK_VOXELS]>,
 }
+
+/// Most slices a lookup walks toward the light before it interpolates: across the light, the
+/// depth has a kink where rays start to cross a surface, and interpolating over the kink
+/// overestimates it: the torus fixture at one optical depth per voxel under one sun came out
+/// 10.6 % off the path tracer from the next slice, 8.4 % from two, 7.0 % from four (the cloud:
+/// 5.8, 4.5, 3.3 %). The walk stops earlier once it has left the medium (its landing point's four
+/// voxels are then all outside it, no kink) or past [`WALK_DEPTH`].
+const WALK_SLICES: usize = 4;
+/// Depth past which a lookup stops walking: the kinks that matter lie within the first optical
+/// depth under a lit surface; walking on to 3 cost 20 % more march time for a 0.1–0.4 point
+/// gain in relative RMSE (torus and cloud fixtures, one sun).
+const WALK_DEPTH: f32 = 1.0;
 
 /// Offsets of one step along x, y and z in a brick.
 const STRIDES: [usize; 3] = [DIM * DIM, DIM, 1];
@@ -218,33 +230,53 @@ impl ShadowVolume {
         Some(self.depths[i as usize][local_index(voxel - key * BLOCK)])
     }
 
-    /// Optical depth toward the light at index point `p` (module doc, "Lookups"); `sampler`
-    /// reads the density, `cursor` remembers a ray's last brick.
+    /// Optical depth toward the light at index point `p`, where the density is `rho` (module
+    /// doc, "Lookups"); `sampler` reads the density, `cursor` remembers a ray's last brick.
     #[inline]
     pub fn optical_depth(
         &self,
         p: Vec3,
+        rho: f32,
         sampler: &mut BrickSampler,
         cursor: &mut ShadowCursor,
     ) -> f32 {
         let a = self.axis;
-        let slice = if self.u[a] > 0.0 {
+        let first = if self.u[a] > 0.0 {
             p[a].ceil()
         } else {
             p[a].floor()
         };
-        let delta = (slice - p[a]).abs();
+        let delta = (first - p[a]).abs();
         let mut q = p + self.u * delta;
-        q[a] = slice;
-        let Some(on_slice) = self.on_slice(q, cursor) else {
-            return self.trilinear(p, cursor);
-        };
-        if delta == 0.0 {
-            return on_slice;
+        q[a] = first;
+        let per_slice = self.sigma_t * self.length;
+        // The walk: landing points on successive slices and the depth from p to each, by the
+        // midpoint rule — one density sample per slice. Where a ray enters the medium the density
+        // along it has a kink; the trapezoid rule's chord over it darkened lit surfaces by 2 %,
+        // and Simpson's rule was no more accurate in the picture for twice the samples. `inside`
+        // is the density last seen, which decides whether to walk on.
+        let mut inside = rho;
+        let mut tau = 0.0;
+        if delta > 0.0 {
+            inside = sampler.sample(0.5 * (p + q));
+            tau = per_slice * delta * inside;
         }
-        // The trilinear density is close to linear over less than a voxel: the trapezoid rule.
-        let rho = 0.5 * (sampler.sample(p) + sampler.sample(q));
-        on_slice + self.sigma_t * self.length * delta * rho
+        let mut walk = [(q, tau); WALK_SLICES];
+        let mut steps = 1;
+        while steps < WALK_SLICES && inside > 0.0 && tau < WALK_DEPTH {
+            inside = sampler.sample(q + 0.5 * self.u);
+            tau += per_slice * inside;
+            q += self.u;
+            walk[steps] = (q, tau);
+            steps += 1;
+        }
+        // The farthest landing point a brick holds (one a step past the occupied region may not).
+        for &(q, tau) in walk[..steps].iter().rev() {
+            if let Some(on_slice) = self.on_slice(q, cursor) {
+                return tau + on_slice;
+            }
+        }
+        self.trilinear(p, cursor)
     }
 
     /// The depth at `q`, a point on a slice, bilinear between the slice's four voxels around it;

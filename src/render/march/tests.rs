@@ -14,7 +14,7 @@ impl<F: Fn(Vec3) -> [[f32; 3]; 2] + Sync> InScatter for Pointwise<F> {
     fn start(&self) -> Self::Sum {
         [[0.0; 3]; 2]
     }
-    fn add(&self, p: Vec3, c: f32, sum: &mut Self::Sum) {
+    fn add(&self, p: Vec3, _rho: f32, c: f32, sum: &mut Self::Sum) {
         let ls = (self.0)(p);
         for part in 0..2 {
             for ch in 0..3 {
@@ -371,7 +371,7 @@ fn transfer_radiance_interpolates_slots() {
     let src = TransferRadiance::new(&layout, &radiance);
     let at = |q: Vec3| {
         let mut sum = CellSum::default();
-        src.add(q, 1.0, &mut sum);
+        src.add(q, 1.0, 1.0, &mut sum);
         src.total(sum)
     };
     // The layout's own trilinear weights, direct red.
@@ -407,7 +407,9 @@ fn transfer_radiance_interpolates_slots() {
         (points[0], 1.0),
     ];
     let mut sum = CellSum::default();
-    steps.iter().for_each(|&(q, c)| src.add(q, c, &mut sum));
+    steps
+        .iter()
+        .for_each(|&(q, c)| src.add(q, 1.0, c, &mut sum));
     let [d, i] = src.total(sum);
     let expect: f32 = steps.iter().map(|&(q, c)| c * want(q)).sum();
     assert!(

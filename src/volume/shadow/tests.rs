@@ -34,14 +34,19 @@ fn a_uniform_tile_along_an_axis_has_the_exact_chord_depth() {
     for x in [0, 5, 64, 120, 127] {
         let p = Vec3::new(x as f32, 40.0, 77.0);
         let want = sigma_t * ((127 - x) as f32 + 0.5);
-        let got = vol.optical_depth(p, &mut sampler, &mut r);
+        let got = vol.optical_depth(p, sampler.sample(p), &mut sampler, &mut r);
         assert!(
             (got - want).abs() < 1e-4 * want.max(1.0),
             "x {x}: {got} vs {want}"
         );
     }
     // Between voxels the depth is trilinear: halfway is the mean.
-    let mid = vol.optical_depth(Vec3::new(10.5, 3.25, 9.0), &mut sampler, &mut r);
+    let mid = vol.optical_depth(
+        Vec3::new(10.5, 3.25, 9.0),
+        sampler.sample(Vec3::new(10.5, 3.25, 9.0)),
+        &mut sampler,
+        &mut r,
+    );
     assert!((mid - sigma_t * 117.0).abs() < 1e-4, "{mid}");
 }
 
@@ -64,7 +69,7 @@ fn oblique_light_matches_a_fine_ray_march() {
             Vec3::new(100.0, 10.0, 126.5),
         ] {
             let want = marched(&field, sigma_t, p, dir);
-            let got = vol.optical_depth(p, &mut sampler, &mut r);
+            let got = vol.optical_depth(p, sampler.sample(p), &mut sampler, &mut r);
             // Bilinear resampling per slice is exact for a uniform field; what remains is the
             // faces' ramps, crossed obliquely.
             assert!(
@@ -87,7 +92,12 @@ fn a_gap_still_carries_the_shadow_of_what_lies_beyond_it() {
     let mut r = ShadowCursor::default();
     let mut sampler = field.sampler();
     // From the lower tile's top voxel: ½ voxel of its own ramp, then the whole upper tile (8).
-    let got = vol.optical_depth(Vec3::new(4.0, 7.0, 4.0), &mut sampler, &mut r);
+    let got = vol.optical_depth(
+        Vec3::new(4.0, 7.0, 4.0),
+        sampler.sample(Vec3::new(4.0, 7.0, 4.0)),
+        &mut sampler,
+        &mut r,
+    );
     let want = sigma_t * (0.5 + 8.0);
     assert!((got - want).abs() < 0.02 * want, "{got} vs {want}");
 }
@@ -144,7 +154,7 @@ fn smooth_density_agrees_with_ray_marching_where_the_density_is() {
             continue;
         }
         // Compare transmittances: what the render multiplies by.
-        let err = ((-vol.optical_depth(p, &mut sampler, &mut r)).exp()
+        let err = ((-vol.optical_depth(p, sampler.sample(p), &mut sampler, &mut r)).exp()
             - (-marched(&field, sigma_t, p, dir)).exp())
         .abs();
         worst = worst.max(err);
