@@ -272,8 +272,8 @@ pub struct RenderArgs {
     /// scatters C·albedo (irradiance 4π·C) [default colour: 0.7]. Repeatable.
     #[arg(long, value_name = "X,Y,Z[,R,G,B]", allow_hyphen_values = true)]
     pub light: Vec<String>,
-    /// Leave a sun in an HDRI as pixels of the map instead of turning it into a light with exact
-    /// shadows.
+    /// Leave the sun of an HDRI (or of the built-in sky) as pixels of the map, lit through the SH
+    /// transfer alone, instead of a light with exact shadows.
     #[arg(long)]
     pub no_extract_sun: bool,
     /// Image size.

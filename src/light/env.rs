@@ -143,13 +143,36 @@ impl Environment {
     /// The built-in sky sampled at `width × height` (≥ 1 each): the same function at any size, so
     /// benchmarks can build large maps without files.
     pub fn sky_with_size(width: usize, height: usize) -> Self {
+        Self::sky_map(width, height, None)
+    }
+
+    /// The built-in sky with its sun as pixels of the map rather than a light: what the SH
+    /// transfer alone can do with it (`--no-extract-sun`).
+    pub fn sky_with_sun_in_map() -> Self {
+        Self::sky_map(SKY_WIDTH, SKY_HEIGHT, Some(sky_sun()))
+    }
+
+    /// The sky's pixels, with `sun` painted in as a disc of radiance E/Ω, its edge softened over
+    /// about one pixel so it does not alias into a jagged disc.
+    fn sky_map(width: usize, height: usize, sun: Option<Sun>) -> Self {
         let (width, height) = (width.max(1), height.max(1));
+        let soft = PI / height as f64;
         let mut pixels = Vec::with_capacity(width * height);
         for row in 0..height {
             let (theta, _, _) = sh::latlong_row(row, height);
             for col in 0..width {
                 let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
-                pixels.push(sky_radiance(sh::direction(theta, phi)));
+                let d = sh::direction(theta, phi);
+                let mut c = sky_radiance(d);
+                if let Some(sun) = &sun {
+                    let cos = glam::DVec3::from(d).dot(sun.direction.as_dvec3());
+                    let r = sun.radius as f64;
+                    let disc = 1.0 - smoothstep(r - 0.5 * soft, r + 0.5 * soft, cos.clamp(-1.0, 1.0).acos());
+                    for (c, e) in c.iter_mut().zip(sun.irradiance) {
+                        *c += (disc * e as f64 / sun.solid_angle()) as f32;
+                    }
+                }
+                pixels.push(c);
             }
         }
         Environment {

@@ -45,7 +45,8 @@ pub struct LightOptions {
     pub window: Window,
     /// Suns given by the user, world space, not scaled. With the built-in sky they replace its sun.
     pub suns: Vec<Sun>,
-    /// Look for a sun in a map file and turn it into a light ([`extract`]).
+    /// Look for a sun in a map file and turn it into a light ([`extract`]); `false` leaves the
+    /// built-in sky's sun as pixels of its map too.
     pub extract_sun: bool,
 }
 
@@ -54,15 +55,19 @@ impl Lighting {
     /// says.
     pub fn load(spec: &str, options: &LightOptions) -> Result<Lighting> {
         let sky = spec == env::SKY_SPEC;
+        let sun_in_map = sky && !options.extract_sun && options.suns.is_empty();
         let mut lighting = Lighting {
-            env: Environment::load(spec)?,
+            env: match sun_in_map {
+                true => Environment::sky_with_sun_in_map(),
+                false => Environment::load(spec)?,
+            },
             rotation: options.rotation_deg.to_radians(),
             scale: options.scale,
             window: options.window,
             suns: Vec::new(),
             sun_search: None,
         };
-        if sky && options.suns.is_empty() {
+        if sky && options.suns.is_empty() && !sun_in_map {
             lighting.add_map_sun(env::sky_sun());
         }
         if !sky && options.extract_sun {
