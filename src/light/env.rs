@@ -167,7 +167,8 @@ impl Environment {
                 if let Some(sun) = &sun {
                     let cos = glam::DVec3::from(d).dot(sun.direction.as_dvec3());
                     let r = sun.radius as f64;
-                    let disc = 1.0 - smoothstep(r - 0.5 * soft, r + 0.5 * soft, cos.clamp(-1.0, 1.0).acos());
+                    let disc = 1.0
+                        - smoothstep(r - 0.5 * soft, r + 0.5 * soft, cos.clamp(-1.0, 1.0).acos());
                     for (c, e) in c.iter_mut().zip(sun.irradiance) {
                         *c += (disc * e as f64 / sun.solid_angle()) as f32;
                     }
