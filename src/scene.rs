@@ -201,6 +201,23 @@ impl Scene {
         Ok((frame, stats, report, suns))
     }
 
+    /// Bytes the light of `lighting.suns` will hold, estimated before it is built: a shadow
+    /// volume and a fluence per transfer voxel for each sun not kept from an earlier render.
+    pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
+        let kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
+        let per_sun = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid)
+            + self
+                .transfer
+                .as_ref()
+                .map_or(0, |t| t.layout.len() as u64 * 4);
+        let new = lighting
+            .suns
+            .iter()
+            .filter(|s| !kept.iter().any(|l| l.is_for(s.direction, self.medium)))
+            .count() as u64;
+        new * per_sun
+    }
+
     /// Drops the kept suns' light: it was built on the transfer now replaced.
     fn forget_suns(&mut self) {
         self.sun_lights

@@ -5,7 +5,7 @@
 
 use std::time::Instant;
 
-use indicatif::ProgressBar;
+use indicatif::{HumanBytes, ProgressBar};
 use serde_json::{json, Value};
 
 use super::args::{GlobalArgs, Method, RenderArgs};
@@ -16,6 +16,7 @@ use vscatter::io::progress;
 use vscatter::light::Lighting;
 use vscatter::render::{Camera, Frame, MarchSettings};
 use vscatter::scene::{BakeConfig, Scene, TraceSettings};
+use vscatter::transfer::memory::check_sun_budget;
 use vscatter::Result;
 
 pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
@@ -132,6 +133,7 @@ fn transfer(
     if scene.transfer.is_none() {
         let clock = Instant::now();
         let Some(bake) = prepare_bake(scene, config, args.bake.dry_run, global)? else {
+            println!("{}", sun_plan(scene, view.lighting));
             return Ok(None);
         };
         if let Some(cache) = &args.cache {
@@ -139,7 +141,23 @@ fn transfer(
         }
         stats["bake"] = bake_stats_json(&bake);
         stats["bake_seconds"] = json!(clock.elapsed().as_secs_f64());
-    } else {
+    }
+    let from_cache = stats["bake"].is_null();
+    if args.bake.dry_run {
+        warn(&scene.warnings(Some(config.settings.scale)));
+        println!("{}", sun_plan(scene, view.lighting));
+        return Ok(None);
+    }
+    let sun_bytes = scene.sun_plan(view.lighting);
+    let held = scene.field.grid.memory_bytes() as u64
+        + scene.field.accelerator_bytes() as u64
+        + scene
+            .transfer
+            .as_ref()
+            .map_or(0, |t| (t.t_ri.len() + t.f_ms.len()) as u64 * 4);
+    check_sun_budget(sun_bytes, held, config.max_memory)?;
+    // Warnings after the last refusal, so an error stays one line (a bake warned already).
+    if from_cache {
         warn(&scene.warnings(Some(config.settings.scale)));
     }
     let settings = MarchSettings {
@@ -167,4 +185,13 @@ fn transfer(
     stats["samples_taken"] = json!(march.samples_taken);
     stats["samples_skipped"] = json!(march.samples_skipped);
     Ok(Some(frame))
+}
+
+/// What the suns will hold, for `--dry-run`: one line.
+fn sun_plan(scene: &Scene, lighting: &Lighting) -> String {
+    format!(
+        "{} suns: shadow volumes and fluences about {}",
+        lighting.suns.len(),
+        HumanBytes(scene.sun_plan(lighting))
+    )
 }

@@ -1,5 +1,6 @@
-//! How much memory a bake will take, estimated before anything big is allocated, and the budget
-//! check that refuses a bake too large for the machine — naming the settings that would fit.
+//! How much memory a bake (and a render's suns) will take, estimated before anything big is
+//! allocated, and the budget checks that refuse work too large for the machine — naming the
+//! settings that would fit.
 
 use indicatif::HumanBytes as human;
 
@@ -138,6 +139,24 @@ impl BakePlan {
             need(&fewer, n),
             need(&faces, n),
         )))
+    }
+}
+
+/// Refuses a render whose suns' shadow volumes and fluences (`sun_bytes`), beside the density
+/// and transfer it holds (`held`), are estimated above `limit` (`None`: [`DEFAULT_MEMORY_SHARE`]
+/// of the memory the system can still give).
+pub fn check_sun_budget(sun_bytes: u64, held: u64, limit: Option<u64>) -> Result<()> {
+    let limit = limit.or_else(|| {
+        crate::io::meminfo::available_memory().map(|a| (a as f64 * DEFAULT_MEMORY_SHARE) as u64)
+    });
+    match limit.filter(|l| sun_bytes + held > *l) {
+        None => Ok(()),
+        Some(limit) => Err(Error::Runtime(format!(
+            "the suns' shadow volumes need about {} beside the {} the volume holds, but the render may use {} (--max-memory); fewer suns, or a volume with fewer active voxels, would fit",
+            human(sun_bytes),
+            human(held),
+            human(limit)
+        ))),
     }
 }
 

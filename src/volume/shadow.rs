@@ -327,14 +327,14 @@ impl ShadowVolume {
         self.depths.len() as u64 * BYTES_PER_BRICK
     }
 
-    /// The bytes [`ShadowVolume::build`] would hold for `grid`, without building it: an upper
-    /// bound (blocks shared between neighbours are counted once each), from the tree's counts
-    /// alone, so a tiled grid of billions of voxels answers at once.
+    /// The bytes [`ShadowVolume::build`] would hold for `grid`, without building it: exact for
+    /// leaves and 8³ tiles, an upper bound for larger tiles ((n + 1)³ bricks for one of n³
+    /// blocks, from the tree's counts alone, so a tiled grid of billions of voxels answers at
+    /// once).
     pub fn estimate_bytes(grid: &SparseGrid) -> u64 {
-        // A leaf or 8³ tile adds at most 8 bricks; an n³-block tile at most (n + 1)³.
         let tiles = |level: TileLevel| grid.tiles(level).count() as u64;
         let edge = |level: TileLevel| (level.dim() / BLOCK as i64) as u64 + 1;
-        let bricks = (grid.leaf_count() as u64 + tiles(TileLevel::Block)) * 8
+        let bricks = keys_of(block_keys(grid)).len() as u64
             + tiles(TileLevel::Node) * edge(TileLevel::Node).pow(3)
             + tiles(TileLevel::Root) * edge(TileLevel::Root).pow(3);
         bricks * BYTES_PER_BRICK
@@ -350,15 +350,7 @@ pub struct ShadowCursor {
 
 /// Blocks that get a brick: every B with an occupied block in B + {0,1}³, sorted x-major.
 fn keys(grid: &SparseGrid) -> Vec<IVec3> {
-    let mut occupied: Vec<IVec3> = grid
-        .leaves()
-        .iter()
-        .map(|l| l.origin >> LEAF_LOG2 as i32)
-        .chain(
-            grid.tiles(TileLevel::Block)
-                .map(|(o, _)| o >> LEAF_LOG2 as i32),
-        )
-        .collect();
+    let mut occupied = block_keys(grid);
     for level in [TileLevel::Node, TileLevel::Root] {
         let n = (level.dim() / BLOCK as i64) as i32;
         for (o, _) in grid.tiles(level) {
@@ -372,6 +364,23 @@ fn keys(grid: &SparseGrid) -> Vec<IVec3> {
             }
         }
     }
+    keys_of(occupied)
+}
+
+/// The blocks of the leaves and 8³ tiles.
+fn block_keys(grid: &SparseGrid) -> Vec<IVec3> {
+    grid.leaves()
+        .iter()
+        .map(|l| l.origin >> LEAF_LOG2 as i32)
+        .chain(
+            grid.tiles(TileLevel::Block)
+                .map(|(o, _)| o >> LEAF_LOG2 as i32),
+        )
+        .collect()
+}
+
+/// Every B with one of `occupied` in B + {0,1}³, sorted x-major, each once.
+fn keys_of(occupied: Vec<IVec3>) -> Vec<IVec3> {
     let mut keys: Vec<IVec3> = occupied
         .iter()
         .flat_map(|&c| (0..8).map(move |n| c - IVec3::new(n >> 2, (n >> 1) & 1, n & 1)))

@@ -121,3 +121,40 @@ fn the_sun_of_an_hdri_is_found_and_said_unless_asked_not_to() {
         stderr(&out)
     );
 }
+
+#[test]
+fn dry_run_counts_the_shadow_volumes_and_the_budget_refuses_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = render(
+        dir.path(),
+        "x.png",
+        &["--dry-run", "--sun", "0,1,0", "--sun", "1,1,0"],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("2 suns: shadow volumes and fluences about"),
+        "{stdout}"
+    );
+    // From a cache (so the bake's own budget is not what refuses): the suns' part is refused.
+    let input = fixture("cloud.vdb");
+    let mut bake = vec!["bake", input.to_str().unwrap(), "-o", "c.vtc"];
+    bake.extend_from_slice(&QUICK[2..]);
+    assert!(vscatter_in(dir.path(), &bake).status.success());
+    let args = [
+        "render",
+        "c.vtc",
+        "-o",
+        "x.png",
+        "--res",
+        "48x27",
+        "--max-memory",
+        "5M",
+    ];
+    assert_clean_failure(
+        &vscatter_in(dir.path(), &args),
+        1,
+        "shadow volumes need about",
+    );
+    assert!(!dir.path().join("x.png").exists());
+}
