@@ -274,8 +274,11 @@ pub struct RenderArgs {
     pub light: Vec<String>,
     /// Leave the sun of an HDRI (or of the built-in sky) as pixels of the map, lit through the SH
     /// transfer alone, instead of a light with exact shadows.
-    #[arg(long)]
+    #[arg(long, overrides_with = "extract_sun")]
     pub no_extract_sun: bool,
+    /// Take a sun out of an HDRI and light it as a sun with exact shadows (the default).
+    #[arg(long, overrides_with = "no_extract_sun")]
+    pub extract_sun: bool,
     /// Image size.
     #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_resolution)]
     pub res: (u32, u32),
