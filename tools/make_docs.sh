@@ -2,6 +2,7 @@
 # Renders the README's pictures from committed fixtures into docs/:
 #   cloud_sky.png              the set-up command's render: the cloud under the built-in sky
 #   cloud_single.png / cloud_multiple.png   single vs multiple scattering (thesis fig. 6.1)
+#   *_pathtrace.png            the path tracer's image of the same three scenes, to set beside them
 #   cloud_studio.png / cloud_split.png      one bake relit by two HDRIs (thesis fig. 6.2)
 #   torus_studio.png           the two intertwined rings (thesis "torus")
 # The relit pair comes from one cache: only the environment changes between them.
@@ -14,18 +15,25 @@ TMP=$(mktemp -d)
 trap 'rm -rf "$TMP"' EXIT
 RES=640x360
 CLOUD=fixtures/cloud.vdb
+# Path-tracer samples per pixel: enough that its noise does not hide the shading compared.
+SPP=${SPP:-256}
 
 $VS render "$CLOUD" -o "$OUT/cloud_sky.png" --res $RES --quiet
+$VS render "$CLOUD" -o "$OUT/cloud_sky_pathtrace.png" --res $RES --method pathtrace --spp "$SPP" --quiet
 
 # Single vs multiple scattering: albedo 0.99, as clouds are; the same camera and environment.
 $VS bake "$CLOUD" -o "$TMP/single.vtc" --albedo 0.99 --single-scatter --quiet
 $VS bake "$CLOUD" -o "$TMP/multiple.vtc" --albedo 0.99 --quiet
 $VS render "$TMP/single.vtc" -o "$OUT/cloud_single.png" --env fixtures/env/sky_sun.exr --res $RES --quiet
 $VS render "$TMP/multiple.vtc" -o "$OUT/cloud_multiple.png" --env fixtures/env/sky_sun.exr --res $RES --quiet
+for bounces in single:1 multiple:100000; do
+    $VS render "$CLOUD" -o "$OUT/cloud_${bounces%%:*}_pathtrace.png" --env fixtures/env/sky_sun.exr --res $RES \
+        --albedo 0.99 --method pathtrace --max-bounces "${bounces##*:}" --spp "$SPP" --quiet
+done
 
 # One transfer, two environments: relighting needs no new bake.
 $VS render "$TMP/multiple.vtc" -o "$OUT/cloud_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
 $VS render "$TMP/multiple.vtc" -o "$OUT/cloud_split.png" --env fixtures/env/split.exr --res $RES --quiet
 
 $VS render fixtures/torus.vdb -o "$OUT/torus_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
-echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png"
+echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png and the path tracer's three"

@@ -45,8 +45,8 @@ done; done
 echo
 echo "### Sky with a sun, albedo 0.9: the sun as a light, and as pixels of the map (SH alone)"
 echo
-echo "| fixture | environment | σt | single, sun as light | single, SH alone | multiple, sun as light | multiple, SH alone |"
-echo "|---|---|---|---|---|---|---|"
+echo "| fixture | environment | σt | single, sun as light: RMSE | bias | single, SH alone: RMSE | bias | multiple, sun as light: RMSE | bias | multiple, SH alone: RMSE | bias |"
+echo "|---|---|---|---|---|---|---|---|---|---|---|"
 for fx in cloud torus; do for env in sky sky_sun; do for st in 0.08 1; do
     e=$([ "$env" = sky ] && echo sky || echo "$F/env/sky_sun.exr")
     common=("$F/$fx.vdb" --res "$RES" --env "$e" --no-background --albedo 0.9 --sigma-t "$st")
