@@ -5,6 +5,8 @@
 #               memory of a uniform 300³ block
 #   render      issue 5: 1920×1080 renders vs Debian's vdb_render on the same VDB and camera,
 #               relight time, 2048×1024 HDRI projection, sparse (helix) vs compact march time
+#   sun         issue 13: a moved sun vs no sun (1920×1080, cloud_large), one sun vs vdb_render with
+#               the same light, shadow-volume bytes per active voxel
 #   sh          SH projection: sh_project (cargo bench) and a 2048×1024 EXR through `vscatter env`
 #   sh_project  only benches/sh_project.rs (4096×2048 map, 10 and 20 bands)
 #   versus      this binary against an earlier one (BENCH_OLD=path, or BENCH_OLD_REV=commit, default
@@ -118,11 +120,13 @@ RUNS="${BENCH_RUNS:-5}"
 # compare NAME VDB : vscatter render of the cache vs vdb_render of the VDB, same camera, 1920×1080.
 # vdb_render: single scattering, one light, its defaults (extinction (absorb+scatter) 1.6 per voxel,
 # primary step 1 voxel, shadow step 3, cutoff 0.005); its -fov is horizontal (aperture width), as ours.
+# compare_peer NAME VDB TARGET [vscatter flags…]: the NAME_s1.6 cache under studio.exr (and the
+# flags) against vdb_render on VDB with its default light, same camera; ratio target TARGET.
 compare_peer() {
-    local name="$1" vdb="$2" vtc; vtc="$(cache "${name}_s1.6")"
+    local name="$1" vdb="$2" target="$3" vtc; vtc="$(cache "${name}_s1.6")"; shift 3
     camera_for "$vdb"
     local vs_cmd=("$VS" render "$vtc" -o "$BENCH_OUT/${name}.exr" --res "$RES" --env "$STUDIO"
-                  --camera-pos "$CAM_POS" --lookat "$CAM_AT" --fov 45 --quiet --stats)
+                  --camera-pos "$CAM_POS" --lookat "$CAM_AT" --fov 45 --quiet --stats "$@")
     local vr_cmd=(vdb_render "$vdb" "$BENCH_OUT/${name}_vdb_render.exr" -res "$RES"
                   -translate "$CAM_POS" -lookat "$CAM_AT" -fov 45)
     run_timed "render_$name" "${vs_cmd[@]}"; local vs_rc=$RC vs_wall=$WALL vs_rss=$RSS_MB vs_cpu=$CPU l1=$LOAD
@@ -141,7 +145,7 @@ compare_peer() {
     fi
     l2="$(load)"
     local r; r=$(ratio "$m1" "$m2")
-    printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s | %s\n" "$name" "$m1" "$m2" "$r" "$(verdict "$r" "<=" 0.3)" \
+    printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s | %s\n" "$name" "$m1" "$m2" "$r" "$(verdict "$r" "<=" "$target")" \
         "$vs_rss" "$vr_rss" "$vs_cpu" "$vr_cpu" "$(j "render_$name" march_seconds %.2f)" "$(j "render_$name" write_seconds %.2f)" \
         "$(j "render_$name" read_seconds %.3f)" "$how" "$l1" "$l2"
 }
@@ -157,8 +161,8 @@ section_render() {
 
     echo "-- $RES, vscatter (cache, multiple scattering, $STUDIO) vs vdb_render (single scattering, 1 light), same camera (target: ratio <= 0.3)"
     printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s\n" input vscatter_s vdb_rend_s ratio verdict vs_rssMB vr_rssMB vs_cpu vr_cpu march_s write_s read_s timing "load (vscatter | after)"
-    compare_peer cloud fixtures/cloud.vdb
-    compare_peer cloud_large "$CL"
+    compare_peer cloud fixtures/cloud.vdb 0.3
+    compare_peer cloud_large "$CL" 0.3
 
     echo "-- relight and environment projection, cloud_large cache (target: relight <= 50 ms)"
     printf "%-34s %10s %10s %10s %9s  %-22s %s\n" run relight_ms env_ms march_s wall_s verdict load
@@ -189,6 +193,46 @@ section_render() {
     done
     local r; r=$(ratio "${M[helix600]}" "${M[cloud_large]}")
     echo "helix600 / cloud_large march time: x$r ($(verdict "$r" "<=" 2))"
+}
+
+# ---------------------------------------------------------------------------------------------
+# sun (issue 13)
+# ---------------------------------------------------------------------------------------------
+# One sun on the cloud_large cache (σt 1.6), 1920×1080: a render whose sun has moved — a new
+# shadow volume and lattice solve, relight and march, as every new process does — against the
+# same render with the sun left in the sky's map (no sun light); one sun against vdb_render with
+# the same light direction (its default, 0.3,0.3,0); the suns' bytes per active voxel.
+section_sun() {
+    need_tools; build_vscatter; ensure_inputs
+    command -v vdb_render >/dev/null || apt_install libopenvdb-tools
+    local CL="$BENCH_IN/cloud_large.vdb" vtc
+    ensure_cache cloud_large_s1.6 "$CL" --sigma-t 1.6
+    vtc="$(cache cloud_large_s1.6)"
+    camera_for "$CL"
+    local view=(--res "$RES" --camera-pos "$CAM_POS" --lookat "$CAM_AT" --fov 45 --env sky --quiet --stats)
+    local with=("$VS" render "$vtc" -o "$BENCH_OUT/sun_with.exr" "${view[@]}")
+    local without=("$VS" render "$vtc" -o "$BENCH_OUT/sun_without.exr" "${view[@]}" --no-extract-sun)
+    run_timed sun_with "${with[@]}"; run_timed sun_without "${without[@]}"
+    local i a=() b=()
+    for ((i = 0; i < RUNS; i++)); do a+=("$(wall_of "${with[@]}")"); b+=("$(wall_of "${without[@]}")"); done
+    local m1 m2; m1=$(median "${a[@]}"); m2=$(median "${b[@]}")
+    # Stage sums from the --stats of the first runs: the work that moving a sun redoes.
+    local moved still
+    moved=$(awk -v s="$(j sun_with sun_shadow_seconds)" -v l="$(j sun_with sun_lattice_seconds)" \
+        -v r="$(j sun_with relight_seconds)" -v m="$(j sun_with march_seconds)" 'BEGIN{ printf "%.3f", s+l+r+m }')
+    still=$(awk -v r="$(j sun_without relight_seconds)" -v m="$(j sun_without march_seconds)" 'BEGIN{ printf "%.3f", r+m }')
+    echo "-- cloud_large cache, $RES, built-in sky: a moved sun against no sun light (target: ratio <= 1.5)"
+    printf "%-30s %9s %9s %8s %-22s %s\n" measure with_sun no_sun ratio verdict load
+    local r; r=$(ratio "$m1" "$m2")
+    printf "%-30s %9s %9s %8s %-22s %s\n" "wall, median of $RUNS" "$m1" "$m2" "$r" "$(verdict "$r" "<=" 1.5)" "$LOAD"
+    r=$(ratio "$moved" "$still")
+    printf "%-30s %9s %9s %8s %-22s %s\n" "shadow+lattice+relight+march" "$moved" "$still" "$r" "$(verdict "$r" "<=" 1.5)" "$LOAD"
+    echo "   with sun: shadow $(j sun_with sun_shadow_seconds %.3f) s, lattice $(j sun_with sun_lattice_seconds %.3f) s, march $(j sun_with march_seconds %.3f) s; without: march $(j sun_without march_seconds %.3f) s"
+    local bytes active; bytes=$(j sun_with sun_bytes); active=$(info_field "$CL" active_voxels)
+    echo "   shadow volume + fluence: $(mib "$bytes") MiB for $active active voxels = $(awk -v b="$bytes" -v n="$active" 'BEGIN{ printf "%.1f", b/n }') bytes per active voxel"
+    echo "-- one sun (--light 0.3,0.3,0, vdb_render's default) from the cache vs vdb_render, same camera (target: ratio <= 0.5)"
+    printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s\n" input vscatter_s vdb_rend_s ratio verdict vs_rssMB vr_rssMB vs_cpu vr_cpu march_s write_s read_s timing "load (vscatter | after)"
+    compare_peer cloud_large "$CL" 0.5 --light 0.3,0.3,0
 }
 
 # ---------------------------------------------------------------------------------------------
@@ -242,7 +286,7 @@ section_versus() {
     cmp -s "$o/old_t.vtc" "$o/new_t.vtc" && echo "   the two caches are byte-identical" || echo "   the two caches differ"
 }
 
-SECTIONS=(bake render sh)
+SECTIONS=(bake render sun sh)
 
 run=("$@")
 { [ ${#run[@]} -eq 0 ] || [ "${run[0]}" = all ]; } && run=("${SECTIONS[@]}")

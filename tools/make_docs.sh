@@ -9,10 +9,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
-VS=target/release/vscatter
 OUT=docs
 TMP=$(mktemp -d)
 trap 'rm -rf "$TMP"' EXIT
+# A copy, so a rebuild while the path tracer runs cannot mix two binaries in one set of pictures.
+cp target/release/vscatter "$TMP/vscatter"
+VS=$TMP/vscatter
 RES=640x360
 CLOUD=fixtures/cloud.vdb
 # Path-tracer samples per pixel: enough that its noise does not hide the shading compared.
