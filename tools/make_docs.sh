@@ -2,7 +2,8 @@
 # Renders the README's pictures from committed fixtures into docs/:
 #   cloud_sky.png              the set-up command's render: the cloud under the built-in sky
 #   cloud_single.png / cloud_multiple.png   single vs multiple scattering (thesis fig. 6.1)
-#   *_pathtrace.png            the path tracer's image of the same three scenes, to set beside them
+#   *_pathtrace.png            the path tracer's image of the same scenes, to set beside them
+#   sun_torus.png / sun_cloud.png           one sun, black sky, single scattering
 #   cloud_studio.png / cloud_split.png      one bake relit by two HDRIs (thesis fig. 6.2)
 #   torus_studio.png           the two intertwined rings (thesis "torus")
 # The relit pair comes from one cache: only the environment changes between them.
@@ -38,4 +39,12 @@ $VS render "$TMP/multiple.vtc" -o "$OUT/cloud_studio.png" --env fixtures/env/stu
 $VS render "$TMP/multiple.vtc" -o "$OUT/cloud_split.png" --env fixtures/env/split.exr --res $RES --quiet
 
 $VS render fixtures/torus.vdb -o "$OUT/torus_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
+
+# One sun on a black sky, single scattering at the default σt: the shadow volume beside the path
+# tracer (docs/accuracy.md, "Suns").
+for fx in torus cloud; do
+    sun=(fixtures/$fx.vdb --res 480x270 --env sky --env-scale 0 --sun 0.5,0.8,0.3,3,3,3 --quiet)
+    $VS render "${sun[@]}" -o "$OUT/sun_$fx.png" --single-scatter
+    $VS render "${sun[@]}" -o "$OUT/sun_${fx}_pathtrace.png" --method pathtrace --max-bounces 1 --spp "$SPP"
+done
 echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png and the path tracer's three"

@@ -8,16 +8,17 @@
 //! of non-zero density can have its lower corner in.
 //!
 //! **The sweep.** Let u be the light direction in index space scaled so its major axis component
-//! is ±1. Voxel p's optical depth is that of q = p + u (one slice nearer the light, between four
-//! voxels of that slice) plus the depth of the segment from p to q:
+//! is ±1, and J = [`JUMP`]. Voxel p's optical depth is that of q = p + J·u (J slices nearer the
+//! light, between four voxels of that slice) plus the depth of the segment from p to q:
 //!
 //! ```text
-//! τ(p) = bilinear τ(q) + σt·ℓ·(ρ(p) + 4ρ(m) + ρ(q))/6,   m = (p + q)/2, ℓ = the segment's world length
+//! τ(p) = bilinear τ(q) + σt·ℓ·Σ_{k<J} ρ(p + (k + ½)·u),   ℓ = the world length of u
 //! ```
 //!
-//! (Simpson's rule on the trilinear density). Slices are swept from the light's side, all the
-//! bricks of one slice in parallel, so the whole volume costs a few lookups per stored voxel — no
-//! ray per voxel. A slice voxel outside every brick is empty space; its depth is that of the
+//! (the midpoint rule on the trilinear density, one sample per slice: Simpson's rule, at twice the
+//! samples, changed no figure of the accuracy report by more than 0.1 point and cost 45 % more).
+//! Slices are swept from the light's side, all the bricks of one slice in parallel, so the whole
+//! volume costs J density samples and four lookups per stored voxel — no ray per voxel. A slice voxel outside every brick is empty space; its depth is that of the
 //! occupied region it looks at, found by one ray march with empty-space skipping (memoised per
 //! brick slice), so light crossing a gap between two parts of a cloud still carries the first
 //! part's shadow.
@@ -156,6 +157,7 @@ impl ShadowVolume {
                     let base = keys[i as usize] * BLOCK;
                     let mut sampler = field.sampler();
                     let mut outside: HashMap<IVec3, f32> = HashMap::new();
+                    let mut cursor = ShadowCursor::default();
                     let mut out = [0f32; DIM * DIM];
                     for jb in 0..DIM {
                         for jc in 0..DIM {
@@ -165,13 +167,12 @@ impl ShadowVolume {
                             l[c] = jc as i32;
                             let p = (base + l).as_vec3();
                             let q = p + u * JUMP as f32;
-                            // Simpson's rule over each slice-to-slice step of the segment.
-                            let mut rho = sampler.sample(p) + sampler.sample(q);
-                            for k in 1..2 * JUMP {
-                                let w = if k % 2 == 1 { 4.0 } else { 2.0 };
-                                rho += w * sampler.sample(p + u * (0.5 * k as f32));
+                            // The midpoint rule over each slice-to-slice step of the segment.
+                            let mut rho = 0.0;
+                            for k in 0..JUMP {
+                                rho += 6.0 * sampler.sample(p + u * (k as f32 + 0.5));
                             }
-                            let upstream = volume.bilinear(q, axis, |voxel| {
+                            let upstream = volume.bilinear(q, axis, &mut cursor, |voxel| {
                                 *outside.entry(voxel).or_insert_with(|| {
                                     -depth.transmittance(voxel.as_vec3(), direction).ln()
                                 })
@@ -200,7 +201,13 @@ impl ShadowVolume {
 
     /// Optical depth at `q`, a point on a slice of `axis` (integer there), bilinear in the four
     /// voxels around it; a voxel in no brick asks `outside`.
-    fn bilinear(&self, q: Vec3, axis: usize, mut outside: impl FnMut(IVec3) -> f32) -> f32 {
+    fn bilinear(
+        &self,
+        q: Vec3,
+        axis: usize,
+        cursor: &mut ShadowCursor,
+        mut outside: impl FnMut(IVec3) -> f32,
+    ) -> f32 {
         let (base, f) = floor_split(q);
         let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
         let mut sum = 0.0;
@@ -213,7 +220,7 @@ impl ShadowVolume {
                 let mut voxel = base;
                 voxel[b] += db;
                 voxel[c] += dc;
-                let value = match self.core_value(voxel) {
+                let value = match self.core_value(voxel, cursor) {
                     Some(v) => v,
                     None => outside(voxel),
                 };
@@ -224,10 +231,9 @@ impl ShadowVolume {
     }
 
     /// The depth of `voxel` from the brick of its own block, if there is one.
-    fn core_value(&self, voxel: IVec3) -> Option<f32> {
-        let key = voxel >> LEAF_LOG2 as i32;
-        let i = *self.entries.get(&key)?;
-        Some(self.depths[i as usize][local_index(voxel - key * BLOCK)])
+    fn core_value(&self, voxel: IVec3, cursor: &mut ShadowCursor) -> Option<f32> {
+        let brick = self.brick(voxel, cursor)?;
+        Some(brick[local_index(voxel - (voxel >> LEAF_LOG2 as i32) * BLOCK)])
     }
 
     /// Optical depth toward the light at index point `p`, where the density is `rho` (module
