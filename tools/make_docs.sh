@@ -43,7 +43,7 @@ $VS render fixtures/torus.vdb -o "$OUT/torus_studio.png" --env fixtures/env/stud
 # One sun on a black sky, single scattering at the default σt: the shadow volume beside the path
 # tracer (docs/accuracy.md, "Suns").
 for fx in torus cloud; do
-    sun=(fixtures/$fx.vdb --res 480x270 --env sky --env-scale 0 --sun 0.5,0.8,0.3,3,3,3 --quiet)
+    sun=(fixtures/$fx.vdb --res 480x270 --env sky --env-scale 0 --sun 0.5,0.8,0.3,3,3,3 --exposure 1.5 --quiet)
     $VS render "${sun[@]}" -o "$OUT/sun_$fx.png" --single-scatter
     $VS render "${sun[@]}" -o "$OUT/sun_${fx}_pathtrace.png" --method pathtrace --max-bounces 1 --spp "$SPP"
 done
