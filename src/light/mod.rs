@@ -218,4 +218,36 @@ mod tests {
             "{coeffs:?}"
         );
     }
+
+    fn options(suns: Vec<Sun>, extract_sun: bool) -> LightOptions {
+        LightOptions {
+            rotation_deg: 90.0,
+            scale: 2.0,
+            window: Window::None,
+            suns,
+            extract_sun,
+        }
+    }
+
+    #[test]
+    fn the_sky_brings_its_sun_as_a_light_unless_replaced_or_kept_in_the_map() {
+        let sky = env::sky_sun();
+        let lit = Lighting::load(env::SKY_SPEC, &options(vec![], true)).unwrap();
+        assert_eq!(lit.suns.len(), 1);
+        // Turned and scaled with the map.
+        let want = sky.rotated_y(90f64.to_radians());
+        assert!((lit.suns[0].direction - want.direction).length() < 1e-6);
+        assert_eq!(lit.suns[0].irradiance, sky.irradiance.map(|e| e * 2.0));
+        // The background shows the disc; the map the path tracer escapes to does not.
+        let d = lit.suns[0].direction;
+        assert!(lit.background(d)[0] > 1000.0 * lit.radiance(d)[0]);
+        // A sun of the user's replaces it, unscaled and unturned.
+        let mine = Sun::new(Vec3::Y, [1.0, 2.0, 3.0], 0.0).unwrap();
+        let replaced = Lighting::load(env::SKY_SPEC, &options(vec![mine], true)).unwrap();
+        assert_eq!(replaced.suns, vec![mine]);
+        // Kept in the map: no light, and the map's pixels hold its power.
+        let kept = Lighting::load(env::SKY_SPEC, &options(vec![], false)).unwrap();
+        assert!(kept.suns.is_empty());
+        assert!(kept.radiance(d)[0] > 1000.0);
+    }
 }
