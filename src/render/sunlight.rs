@@ -96,11 +96,12 @@ fn first_scattering(
             for x in 0..k {
                 for y in 0..k {
                     for z in 0..k {
-                        let p = (base + IVec3::new(x, y, z)).as_vec3();
-                        let rho = sampler.sample(p);
+                        let voxel = base + IVec3::new(x, y, z);
+                        let rho = sampler.sample(voxel.as_vec3());
                         if rho > 0.0 {
-                            sum += rho
-                                * (-shadow.optical_depth(p, rho, &mut sampler, &mut cursor)).exp();
+                            // A voxel's own depth is what the sweep stored there, exactly.
+                            let tau = shadow.core_value(voxel, &mut cursor).unwrap_or(0.0);
+                            sum += rho * (-tau).exp();
                         }
                     }
                 }

@@ -230,8 +230,9 @@ impl ShadowVolume {
         sum
     }
 
-    /// The depth of `voxel` from the brick of its own block, if there is one.
-    fn core_value(&self, voxel: IVec3, cursor: &mut ShadowCursor) -> Option<f32> {
+    /// The depth at density voxel `voxel`, as swept (exact there, nothing interpolated), from the
+    /// brick of its own block if there is one; `cursor` remembers the last brick.
+    pub fn core_value(&self, voxel: IVec3, cursor: &mut ShadowCursor) -> Option<f32> {
         let brick = self.brick(voxel, cursor)?;
         Some(brick[local_index(voxel - (voxel >> LEAF_LOG2 as i32) * BLOCK)])
     }
