@@ -191,8 +191,10 @@ impl Scene {
         let (frame, stats, report) = render::render_volume(
             &self.field,
             transfer,
-            lighting,
-            &refs,
+            &render::Light {
+                lighting,
+                suns: &refs,
+            },
             background,
             camera,
             settings,

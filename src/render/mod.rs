@@ -89,20 +89,25 @@ pub struct RenderReport {
     pub march: Duration,
 }
 
-/// Relights `transfer` under `lighting` and marches `field` as `camera` sees it, with
-/// `background` behind the volume (`None`: alpha); `progress` counts image tiles. `suns` holds
-/// the light of each of `lighting.suns`, in order.
-#[allow(clippy::too_many_arguments)]
+/// The light of one render: the lighting, and the light of each of its suns on this volume (in
+/// the order of `lighting.suns`).
+pub struct Light<'a> {
+    pub lighting: &'a Lighting,
+    pub suns: &'a [&'a SunLight],
+}
+
+/// Relights `transfer` under `light` and marches `field` as `camera` sees it, with `background`
+/// behind the volume (`None`: alpha); `progress` counts image tiles.
 pub fn render_volume(
     field: &DensityField,
     transfer: &Transfer,
-    lighting: &Lighting,
-    suns: &[&SunLight],
+    light: &Light,
     background: Option<Background>,
     camera: &Camera,
     settings: &MarchSettings,
     progress: &indicatif::ProgressBar,
 ) -> (Frame, MarchStats, RenderReport) {
+    let Light { lighting, suns } = *light;
     let t = Instant::now();
     let env_coeffs = lighting.sh_coefficients(transfer.bands);
     let project = t.elapsed();
@@ -277,8 +282,10 @@ mod tests {
         let (frame, stats, _) = render_volume(
             &field,
             &transfer,
-            &lighting,
-            &[],
+            &Light {
+                lighting: &lighting,
+                suns: &[],
+            },
             Some(&bg),
             &cam,
             &MarchSettings::default(),
