@@ -9,7 +9,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::light::sh::{self, ShRgb};
-use crate::light::sun::Sun;
+use crate::light::sun::{cap_solid_angle, Sun};
 use crate::math::floor::floor;
 
 /// The `--env` value that selects the built-in sky instead of a file.
@@ -157,6 +157,11 @@ impl Environment {
     fn sky_map(width: usize, height: usize, sun: Option<Sun>) -> Self {
         let (width, height) = (width.max(1), height.max(1));
         let soft = PI / height as f64;
+        // The disc's radiance E/Ω, its direction and radius, once for the whole map.
+        let disc = sun.map(|s| {
+            let radiance = s.irradiance.map(|e| e as f64 / s.solid_angle());
+            (s.direction.as_dvec3(), s.radius as f64, radiance)
+        });
         let mut pixels = Vec::with_capacity(width * height);
         for row in 0..height {
             let (theta, _, _) = sh::latlong_row(row, height);
@@ -164,13 +169,12 @@ impl Environment {
                 let phi = 2.0 * PI * (col as f64 + 0.5) / width as f64;
                 let d = sh::direction(theta, phi);
                 let mut c = sky_radiance(d);
-                if let Some(sun) = &sun {
-                    let cos = glam::DVec3::from(d).dot(sun.direction.as_dvec3());
-                    let r = sun.radius as f64;
-                    let disc = 1.0
+                if let Some((centre, r, radiance)) = disc {
+                    let cos = glam::DVec3::from(d).dot(centre);
+                    let inside = 1.0
                         - smoothstep(r - 0.5 * soft, r + 0.5 * soft, cos.clamp(-1.0, 1.0).acos());
-                    for (c, e) in c.iter_mut().zip(sun.irradiance) {
-                        *c += (disc * e as f64 / sun.solid_angle()) as f32;
+                    for (c, l) in c.iter_mut().zip(radiance) {
+                        *c += (inside * l) as f32;
                     }
                 }
                 pixels.push(c);
@@ -389,13 +393,13 @@ pub fn sky_sun() -> Sun {
         (90.0 - SUN_ELEVATION_DEG).to_radians(),
         SUN_AZIMUTH_DEG.to_radians(),
     );
-    let omega = 2.0 * PI * (1.0 - (SUN_RADIUS_DEG as f64).to_radians().cos());
-    Sun::new(
-        glam::DVec3::from(d).as_vec3(),
-        SUN_RADIANCE.map(|l| (l * omega) as f32),
-        SUN_RADIUS_DEG,
-    )
-    .expect("the built-in sun is valid")
+    let radius = (SUN_RADIUS_DEG as f64).to_radians();
+    let omega = cap_solid_angle(radius);
+    Sun {
+        direction: glam::DVec3::from(d).normalize().as_vec3(),
+        irradiance: SUN_RADIANCE.map(|l| (l * omega) as f32),
+        radius: radius as f32,
+    }
 }
 
 /// Radiance of the built-in sky (without its sun) from direction `d`.

@@ -16,7 +16,7 @@ use std::f64::consts::PI;
 use glam::DVec3;
 
 use crate::light::env::Environment;
-use crate::light::sun::{Sun, MAX_RADIUS_DEG};
+use crate::light::sun::{cap_solid_angle, Sun, MAX_RADIUS_DEG};
 
 /// Rec. 709 luminance weights: HDRIs are almost always linear Rec. 709 / sRGB primaries, and
 /// brightness, not any one channel, is what makes a peak a sun.
@@ -123,7 +123,7 @@ fn search(env: &Environment) -> Result<(Sun, Environment, f64), String> {
     if total <= 0.0 {
         return Err("no sun: the map is black".into());
     }
-    let max_omega = disc_solid_angle((MAX_RADIUS_DEG as f64).to_radians());
+    let max_omega = cap_solid_angle((MAX_RADIUS_DEG as f64).to_radians());
     let Some(core) = Core::grow(&grid, pixels, max_omega) else {
         return Err(format!(
             "no compact peak: the brightest region spans more than {max_omega:.2} sr (a sun is at \
@@ -178,11 +178,6 @@ fn search(env: &Environment) -> Result<(Sun, Environment, f64), String> {
     let (residual, _) = Environment::from_pixels(grid.width, grid.height, cut.residual)
         .map_err(|e| format!("no sun: {e}"))?;
     Ok((sun, residual, share))
-}
-
-/// Solid angle of a disc (spherical cap) of angular radius `radius`.
-fn disc_solid_angle(radius: f64) -> f64 {
-    2.0 * PI * (1.0 - radius.cos())
 }
 
 /// Per-row and per-column geometry of a latlong map's pixel centres.
@@ -549,7 +544,7 @@ mod tests {
     /// Largest per-channel relative error of the sun's irradiance against a disc of `radiance`
     /// and `radius_deg`.
     fn power_error(sun: &Sun, radiance: [f64; 3], radius_deg: f64) -> f64 {
-        let omega = disc_solid_angle(radius_deg.to_radians());
+        let omega = cap_solid_angle(radius_deg.to_radians());
         (0..3)
             .map(|k| (sun.irradiance[k] as f64 / (radiance[k] * omega) - 1.0).abs())
             .fold(0.0, f64::max)

@@ -93,7 +93,7 @@ impl Sun {
 
     /// Solid angle of the disc, steradians (0 for a point).
     pub fn solid_angle(&self) -> f64 {
-        2.0 * PI * (1.0 - (self.radius as f64).cos())
+        cap_solid_angle(self.radius as f64)
     }
 
     /// Radiance seen looking along `dir` (unit, toward the sky): E/Ω inside the disc, else 0. A
@@ -135,6 +135,11 @@ impl Sun {
             ..*self
         }
     }
+}
+
+/// Solid angle of a disc on the sphere (a spherical cap) of angular radius `radius` radians.
+pub fn cap_solid_angle(radius: f64) -> f64 {
+    2.0 * PI * (1.0 - radius.cos())
 }
 
 /// Two unit vectors completing `w` (unit) to an orthonormal basis.
