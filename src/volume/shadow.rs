@@ -84,6 +84,17 @@ const WALK_DEPTH: f32 = 1.0;
 /// Offsets of one step along x, y and z in a brick.
 const STRIDES: [usize; 3] = [DIM * DIM, DIM, 1];
 
+/// The local voxel at `local` along `axis` and (`jb`, `jc`) along the two others, in the order
+/// the sweep's slice buffers use.
+#[inline]
+fn slice_voxel(axis: usize, local: i32, jb: usize, jc: usize) -> IVec3 {
+    let mut l = IVec3::ZERO;
+    l[axis] = local;
+    l[(axis + 1) % 3] = jb as i32;
+    l[(axis + 2) % 3] = jc as i32;
+    l
+}
+
 /// Index of local voxel `l` ∈ [0, 8]³ in a brick, x-major.
 #[inline]
 fn local_index(l: IVec3) -> usize {
@@ -139,7 +150,6 @@ impl ShadowVolume {
             false => (lo..=hi).collect(),
         };
         let depth = OpticalDepth::new(field, sigma_t, true);
-        let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
         for s in slices {
             // Bricks holding slice s: as their own voxels, or as the apron of the brick below.
             let own = s.div_euclid(BLOCK);
@@ -161,23 +171,18 @@ impl ShadowVolume {
                     let mut out = [0f32; DIM * DIM];
                     for jb in 0..DIM {
                         for jc in 0..DIM {
-                            let mut l = IVec3::ZERO;
-                            l[axis] = local;
-                            l[b] = jb as i32;
-                            l[c] = jc as i32;
-                            let p = (base + l).as_vec3();
+                            let p = (base + slice_voxel(axis, local, jb, jc)).as_vec3();
                             let q = p + u * JUMP as f32;
                             // The midpoint rule over each slice-to-slice step of the segment.
-                            let mut rho = 0.0;
-                            for k in 0..JUMP {
-                                rho += 6.0 * sampler.sample(p + u * (k as f32 + 0.5));
-                            }
+                            let rho: f32 = (0..JUMP)
+                                .map(|k| sampler.sample(p + u * (k as f32 + 0.5)))
+                                .sum();
                             let upstream = volume.bilinear(q, axis, &mut cursor, |voxel| {
                                 *outside.entry(voxel).or_insert_with(|| {
                                     -depth.transmittance(voxel.as_vec3(), direction).ln()
                                 })
                             });
-                            out[jb * DIM + jc] = upstream + sigma_t * length * rho / 6.0;
+                            out[jb * DIM + jc] = upstream + sigma_t * length * rho;
                         }
                     }
                     (i, local, out)
@@ -187,11 +192,7 @@ impl ShadowVolume {
                 let brick = &mut volume.depths[i as usize];
                 for jb in 0..DIM {
                     for jc in 0..DIM {
-                        let mut l = IVec3::ZERO;
-                        l[axis] = local;
-                        l[b] = jb as i32;
-                        l[c] = jc as i32;
-                        brick[local_index(l)] = out[jb * DIM + jc];
+                        brick[local_index(slice_voxel(axis, local, jb, jc))] = out[jb * DIM + jc];
                     }
                 }
             }
