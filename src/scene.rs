@@ -49,8 +49,6 @@ pub struct Scene {
 /// What the suns of one render cost, for `--stats`.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct SunReport {
-    /// Suns whose light was built for this render (the rest were kept from an earlier one).
-    pub built: usize,
     pub shadow_seconds: f64,
     pub lattice_seconds: f64,
     /// Bytes held by the suns' shadow volumes and fluences.
@@ -248,7 +246,6 @@ impl Scene {
                     return l.clone();
                 }
                 let light = Arc::new(SunLight::build(&self.field, transfer, sun.direction));
-                report.built += 1;
                 report.shadow_seconds += light.shadow_seconds;
                 report.lattice_seconds += light.lattice_seconds;
                 kept.push(light.clone());

@@ -19,7 +19,7 @@ use std::time::Instant;
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 
-use crate::transfer::lattice::{self, LatticeStats};
+use crate::transfer::lattice;
 use crate::transfer::{Medium, Transfer};
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
 use crate::volume::DensityField;
@@ -30,7 +30,6 @@ pub struct SunLight {
     /// Per transfer voxel (layout slot order): fluence of the sun's light scattered once or more,
     /// per unit irradiance. `None` after a `--single-scatter` bake.
     pub multiple: Option<Vec<f32>>,
-    pub lattice: Option<LatticeStats>,
     pub shadow_seconds: f64,
     pub lattice_seconds: f64,
 }
@@ -44,18 +43,13 @@ impl SunLight {
         let shadow = ShadowVolume::build(field, medium.sigma_t, direction);
         let shadow_seconds = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let solved = transfer.lattice.map(|kind| {
+        let multiple = transfer.lattice.map(|kind| {
             let seed = first_scattering(field, transfer, &shadow, medium);
             lattice::solve_emission(field, &transfer.layout, kind, medium, &seed)
         });
-        let (multiple, lattice) = match solved {
-            Some((f, stats)) => (Some(f), Some(stats)),
-            None => (None, None),
-        };
         SunLight {
             shadow,
             multiple,
-            lattice,
             shadow_seconds,
             lattice_seconds: clock.elapsed().as_secs_f64(),
         }

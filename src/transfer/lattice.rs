@@ -446,15 +446,13 @@ fn transport_chunk(
     let (coeffs, albedo) = (first.bands * first.bands, first.medium.albedo);
     let n = links.order[0].len();
     let d = links.dirs.len();
-    let (c0, width) = match drive {
-        Drive::Environment { c0, width } => (c0, width),
-        Drive::Emission(_) => (0, 1),
+    // The coefficients transported, what the first generation emits, and where it starts:
+    // the environment enters at generation 0 and emits nothing; a known emission is generation 1.
+    let (c0, width, mut emit, start) = match drive {
+        Drive::Environment { c0, width } => (c0, width, vec![0f32; n * width], 0),
+        Drive::Emission(q) => (0, 1, q.to_vec(), 1),
     };
     let mut fluence = vec![0f32; n * width];
-    let mut emit = match drive {
-        Drive::Environment { .. } => vec![0f32; n * width],
-        Drive::Emission(q) => q.to_vec(),
-    };
     let mut next = vec![0f32; n * width];
     let mut incoming = vec![0f32; n * width];
     let mut stats = LatticeStats {
@@ -463,10 +461,6 @@ fn transport_chunk(
     };
     let mut previous = 0.0f64;
     let limit = generations.unwrap_or(MAX_GENERATIONS);
-    let start = match drive {
-        Drive::Environment { .. } => 0,
-        Drive::Emission(_) => 1,
-    };
     for generation in start..=limit {
         // Generation 0 is the unscattered light: it enters from the environment, emits nothing
         // (`emit` starts at zero) and is not read out, since T_ri stands for it.
@@ -579,15 +573,14 @@ pub fn bake_multiple(
 /// The multiply scattered fluence of light whose first scattering is known: `emission[x]` is the
 /// power node x scatters per cell volume (albedo × collision density, e.g. σs·Tr_sun·E of a sun
 /// at E = 1). Returns the fluence per node of light scattered once or more — that first
-/// scattering included, as it leaves its cell — and the lattice's statistics; `energy_single` is
-/// then Σ emission. Non-negative wherever the emission is.
+/// scattering included, as it leaves its cell. Non-negative wherever the emission is.
 pub fn solve_emission(
     field: &DensityField,
     layout: &TransferLayout,
     kind: LatticeKind,
     medium: Medium,
     emission: &[f32],
-) -> (Vec<f32>, LatticeStats) {
+) -> Vec<f32> {
     let links = build_links(field, layout, medium, Directions::new(kind), 1);
     // The energy criterion weighs what remains against the total: the first scattering stands
     // for the "single" part here (only its DC term is read, one per node).
@@ -596,7 +589,7 @@ pub fn solve_emission(
         bands: 1,
         medium,
     };
-    transport_chunk(&links, &first, Drive::Emission(emission), None)
+    transport_chunk(&links, &first, Drive::Emission(emission), None).0
 }
 
 #[cfg(test)]
