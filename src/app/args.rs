@@ -8,7 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use glam::Vec3;
 use vscatter::error::{Error, Result};
 use vscatter::io::image::{ExrPrecision, WriteOptions};
-use vscatter::light::sun::{Sun, MAX_SUNS};
+use vscatter::light::sun::Sun;
 use vscatter::light::LightOptions;
 use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
@@ -340,12 +340,6 @@ impl RenderArgs {
             .map(|s| Sun::parse(s, default_irradiance))
             .chain(self.light.iter().map(|s| Sun::parse_vdb_render(s)))
             .collect::<Result<Vec<Sun>>>()?;
-        if suns.len() > MAX_SUNS {
-            return Err(Error::usage(format!(
-                "{} suns given: at most {MAX_SUNS} are supported",
-                suns.len()
-            )));
-        }
         Ok(LightOptions {
             rotation_deg: self.env_rotate,
             scale: self.env_scale,

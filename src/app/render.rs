@@ -29,10 +29,11 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         check_writable(cache)?;
     }
 
-    let mut scene = Scene::open(&args.input, &config)?;
+    // The light first: its checks (the number of suns, the map file) cost less than the volume.
     let clock = Instant::now();
     let lighting = Lighting::load(&args.env, &light_options)?;
     let env_seconds = clock.elapsed().as_secs_f64();
+    let mut scene = Scene::open(&args.input, &config)?;
     if let Some(Ok(found)) = &lighting.sun_search {
         if !global.quiet {
             eprintln!("{}: {found}", args.env);
