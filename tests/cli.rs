@@ -17,6 +17,9 @@ mod vdb;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+/// Bake flags that keep the on-the-fly bake of a small fixture quick.
+pub const QUICK_BAKE: [&str; 6] = ["--bands", "3", "--scale", "4", "--samples", "64"];
+
 /// A file in the repository's fixtures directory.
 pub fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -293,17 +293,22 @@ mod tests {
         assert!(covered > values.len() / 2, "{covered}");
     }
 
-    #[test]
-    fn pure_absorber_gives_the_analytic_transmittance() {
-        // Albedo 0 ⇒ L = Tr·E (docs/model.md). A 128³ tile of density 1 seen along −Z through
-        // its middle: the trilinear density ramps from 0 to 1 over the outer voxel on each side,
-        // so ∫ρ = the chord of [−0.5, 127.5], 128 voxels. The tracer's 0/1 transmittance averages
-        // to e^{−σt·128}.
+    /// `n` paths, seeded by `seed`, along −Z through the middle of a 128³ tile of density 1
+    /// (σt `sigma_t`, `albedo`), under a constant environment `c` and `suns`.
+    fn through_tile(
+        c: f32,
+        sigma_t: f32,
+        albedo: f32,
+        suns: &[Sun],
+        max_bounces: u32,
+        seed: u64,
+        n: u32,
+    ) -> Vec<RayResult> {
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         g.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
         let field = DensityField::new(g);
         let lighting = Lighting {
-            env: constant_env(1.0),
+            env: constant_env(c),
             rotation: 0.0,
             scale: 1.0,
             window: Window::None,
@@ -311,30 +316,42 @@ mod tests {
             sun_search: None,
         };
         let light = lighting.sampler();
-        let sigma_t = 0.01f32;
         let tracer = PathTracer {
             medium: Medium3d {
                 field: &field,
                 sigma_t,
             },
-            albedo: 0.0,
+            albedo,
             light: &light,
-            suns: &[],
-            max_bounces: u32::MAX,
-            seed: 1,
+            suns,
+            max_bounces,
+            seed,
         };
-        let n = 20_000u32;
         let mut stats = PathStats::default();
+        (0..n)
+            .map(|index| {
+                let s = CameraSample {
+                    x: 0,
+                    y: 0,
+                    index,
+                    origin: Vec3::new(63.3, 64.2, 300.0),
+                    dir: -Vec3::Z,
+                };
+                tracer.trace(s, &mut stats)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn pure_absorber_gives_the_analytic_transmittance() {
+        // Albedo 0 ⇒ L = Tr·E (docs/model.md). A 128³ tile of density 1 seen along −Z through
+        // its middle: the trilinear density ramps from 0 to 1 over the outer voxel on each side,
+        // so ∫ρ = the chord of [−0.5, 127.5], 128 voxels. The tracer's 0/1 transmittance averages
+        // to e^{−σt·128}.
+        let sigma_t = 0.01f32;
+        let n = 20_000u32;
         let mut sum = 0.0f64;
-        for index in 0..n {
-            let s = CameraSample {
-                x: 0,
-                y: 0,
-                index,
-                origin: Vec3::new(63.3, 64.2, 300.0),
-                dir: -Vec3::Z,
-            };
-            let r = tracer.trace(s, &mut stats);
+        for r in through_tile(1.0, sigma_t, 0.0, &[], u32::MAX, 1, n) {
             assert_eq!((r.direct, r.indirect), ([0.0; 3], [0.0; 3]));
             sum += r.transmittance as f64;
         }
@@ -349,43 +366,12 @@ mod tests {
         // Camera ray and shadow ray run along one line through a 128³ tile of density 1: with
         // T(s) the optical depth to depth s, L = ∫ σs·(1/4π)·E·e^{−2T(s)} ds = albedo·E/(4π) ·
         // (1 − e^{−2τ})/2, τ = σt·128, whatever the trilinear ramps at the faces.
-        let mut g = SparseGrid::new(Transform::default(), 0.0);
-        g.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
-        let field = DensityField::new(g);
-        let lighting = Lighting {
-            env: constant_env(0.0),
-            rotation: 0.0,
-            scale: 1.0,
-            window: Window::None,
-            suns: Vec::new(),
-            sun_search: None,
-        };
-        let light = lighting.sampler();
         let (sigma_t, albedo, e) = (0.01f32, 0.8f32, 3.0f32);
         let suns = [Sun::new(Vec3::Z, [e; 3], 0.0).unwrap()];
-        let tracer = PathTracer {
-            medium: Medium3d {
-                field: &field,
-                sigma_t,
-            },
-            albedo,
-            light: &light,
-            suns: &suns,
-            max_bounces: 1,
-            seed: 3,
-        };
         let n = 40_000u32;
-        let mut stats = PathStats::default();
         let (mut sum, mut sum2) = (0.0f64, 0.0f64);
-        for index in 0..n {
-            let s = CameraSample {
-                x: 0,
-                y: 0,
-                index,
-                origin: Vec3::new(63.3, 64.2, 300.0),
-                dir: -Vec3::Z,
-            };
-            let v = tracer.trace(s, &mut stats).direct[0] as f64;
+        for r in through_tile(0.0, sigma_t, albedo, &suns, 1, 3, n) {
+            let v = r.direct[0] as f64;
             sum += v;
             sum2 += v * v;
         }

@@ -3,10 +3,7 @@
 use exr::prelude::ReadChannels as _;
 use exr::prelude::ReadLayers as _;
 
-use crate::{assert_clean_failure, fixture, stderr, vscatter_in};
-
-/// Flags that keep the on-the-fly bake of a small fixture quick.
-const QUICK_BAKE: [&str; 6] = ["--bands", "3", "--scale", "4", "--samples", "64"];
+use crate::{assert_clean_failure, fixture, stderr, vscatter_in, QUICK_BAKE};
 
 #[test]
 fn render_writes_an_exr_with_layers_and_a_png() {
