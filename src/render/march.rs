@@ -67,6 +67,12 @@ pub trait InScatter: Sync {
     fn add(&self, p: Vec3, rho: f32, c: f32, sum: &mut Self::Sum);
     /// The sum so far: ([direct RGB], [indirect RGB]).
     fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2];
+    /// Whether Ls can change within one step of a thick medium, so a thick step must be split
+    /// ([`MAX_STEP_DEPTH`]). Ls interpolated between transfer voxels K steps apart cannot; a
+    /// sun's light, falling by e^{−τ} across the step, can.
+    fn varies_within_a_step(&self) -> bool {
+        false
+    }
 }
 
 /// Two sources lit together (the environment's transfer and the suns): their sums side by side.
@@ -86,6 +92,10 @@ impl<A: InScatter, B: InScatter> InScatter for (A, B) {
     fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2] {
         let (a, b) = (self.0.total(sum.0), self.1.total(sum.1));
         std::array::from_fn(|part| std::array::from_fn(|ch| a[part][ch] + b[part][ch]))
+    }
+
+    fn varies_within_a_step(&self) -> bool {
+        self.0.varies_within_a_step() || self.1.varies_within_a_step()
     }
 }
 
@@ -144,6 +154,10 @@ impl<'a> InScatter for SunRadiance<'a> {
 
     fn total(&self, sum: SunSum<'a>) -> [[f32; 3]; 2] {
         [sum.direct, [0.0; 3]]
+    }
+
+    fn varies_within_a_step(&self) -> bool {
+        !self.suns.is_empty()
     }
 }
 
@@ -370,6 +384,7 @@ pub fn march_ray<S: InScatter>(
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
+    let substeps = scene.source.varies_within_a_step();
     let mut sampler = scene.field.sampler();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         // One segment of constant density: optical depth `tau`, source sampled at `p`, at world
@@ -409,7 +424,7 @@ pub fn march_ray<S: InScatter>(
             if rho > 0.0 {
                 let tau = sigma_t * rho * step_f32;
                 let mut tr = 1.0;
-                if tau <= MAX_STEP_DEPTH {
+                if tau <= MAX_STEP_DEPTH || !substeps {
                     tr = segment(p, rho, step_f32, t);
                 } else {
                     // A thick step: its light varies within it (a sun's shadow falls off by
