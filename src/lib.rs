@@ -14,6 +14,7 @@ mod math;
 mod pathtrace;
 pub mod render;
 pub mod scene;
+pub mod sequence;
 pub mod transfer;
 pub mod volume;
 
