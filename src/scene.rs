@@ -9,11 +9,12 @@ use std::time::Instant;
 use indicatif::ProgressBar;
 
 use crate::error::Result;
+use crate::io::progress::Phases;
 use crate::light::Lighting;
 use crate::pathtrace::{Medium3d, PathStats, PathTracer};
 use crate::render::sunlight::SunLight;
 use crate::render::{self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats};
-use crate::transfer::cache::{self, Source};
+use crate::transfer::cache::{self, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer};
 use crate::volume::{load_density, DensityField};
@@ -36,8 +37,9 @@ pub struct Scene {
     pub field: DensityField,
     pub medium: Medium,
     pub transfer: Option<Transfer>,
-    /// The source file's identity, for a cache written from this scene (`None` for a cache).
-    source: Option<Source>,
+    /// The source file's identity and grid, for a cache written from this scene (`None` for a
+    /// cache).
+    origin: Option<Origin>,
     /// Seconds spent reading the input and building the density's accelerators.
     pub read_seconds: f64,
     pub field_seconds: f64,
@@ -61,14 +63,20 @@ impl Scene {
     /// the medium of `config`.
     pub fn open(path: &Path, config: &BakeConfig) -> Result<Scene> {
         let clock = Instant::now();
-        let (grid, medium, transfer, source) = if cache::is_cache(path)? {
+        let (grid, medium, transfer, origin) = if cache::is_cache(path)? {
             let c = cache::read(path)?;
             let medium = c.transfer.medium;
             (c.density, medium, Some(c.transfer), None)
         } else {
+            // The identity first: a file rewritten while it is read then looks stale, never current.
+            let source = Source::of(path)?;
             let loaded = load_density(path, config.grid.as_deref())?;
-            let source = Source::of(path, &loaded.name)?;
-            (loaded.grid, config.medium, None, Some(source))
+            let origin = Origin {
+                source,
+                grid: loaded.name,
+                requested_grid: config.grid.clone(),
+            };
+            (loaded.grid, config.medium, None, Some(origin))
         };
         let read_seconds = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
@@ -77,7 +85,7 @@ impl Scene {
             field,
             medium,
             transfer,
-            source,
+            origin,
             read_seconds,
             field_seconds: clock.elapsed().as_secs_f64(),
             sun_lights: Mutex::new(Vec::new()),
@@ -85,27 +93,23 @@ impl Scene {
     }
 
     /// Takes the transfer from the cache at `path` when it was baked from this very source with
-    /// these settings; returns whether it did. A missing cache, or one in an older format (what
-    /// a bake computes changed), is stale and the caller bakes afresh; a damaged one is an error.
+    /// this configuration ([`cache_is_current`]); returns whether it did. A missing cache, or one in
+    /// an older format (what a bake computes changed), is stale and the caller bakes afresh; a
+    /// damaged one is an error.
     pub fn reuse_cache(&mut self, path: &Path, config: &BakeConfig) -> Result<bool> {
-        let Some(source) = &self.source else {
+        let Some(origin) = &self.origin else {
             return Ok(false);
         };
-        if !path.exists() || cache::format_version(path)?.is_some_and(|v| v < cache::VERSION) {
+        if !path.exists() {
             return Ok(false);
         }
-        let c = cache::read(path)?;
-        let h = &c.header;
-        let same = &h.source == source
-            && h.settings().as_ref() == Some(&config.settings)
-            && h.sigma_t == config.medium.sigma_t
-            && h.albedo == config.medium.albedo
-            && (h.coefficients == "f16") == config.half;
-        if same {
-            self.transfer = Some(c.transfer);
+        let current = cache::read_header(path)?
+            .is_some_and(|h| h.grid == origin.grid && baked_from(&h, &origin.source, config));
+        if current {
+            self.transfer = Some(cache::read(path)?.transfer);
             self.forget_suns();
         }
-        Ok(same)
+        Ok(current)
     }
 
     /// What baking this scene with `settings` will make and need, before it runs.
@@ -114,10 +118,10 @@ impl Scene {
     }
 
     /// Bakes the transfer (check [`BakePlan::check_budget`] first: a bake allocates what its
-    /// plan says), with progress bars unless `quiet`.
-    pub fn bake(&mut self, config: &BakeConfig, quiet: bool) -> BakeStats {
+    /// plan says), reporting its phases to `progress`.
+    pub fn bake(&mut self, config: &BakeConfig, progress: &dyn Phases) -> BakeStats {
         let (transfer, stats) =
-            crate::transfer::bake(&self.field, config.medium, &config.settings, quiet);
+            crate::transfer::bake(&self.field, config.medium, &config.settings, progress);
         self.medium = config.medium;
         self.transfer = Some(transfer);
         self.forget_suns();
@@ -126,7 +130,7 @@ impl Scene {
 
     /// Writes the baked transfer with the density to a cache at `path` (atomically).
     pub fn write_cache(&self, path: &Path, config: &BakeConfig) -> Result<()> {
-        let (Some(transfer), Some(source)) = (&self.transfer, &self.source) else {
+        let (Some(transfer), Some(origin)) = (&self.transfer, &self.origin) else {
             return Err(crate::Error::Runtime(format!(
                 "{}: nothing baked to write",
                 path.display()
@@ -137,7 +141,7 @@ impl Scene {
             grid,
             transfer,
             &config.settings,
-            source.clone(),
+            origin.clone(),
             config.half,
         );
         cache::write(path, &header, grid, transfer)
@@ -283,6 +287,32 @@ impl Scene {
             tracer.trace(sample, stats)
         })
     }
+}
+
+/// Whether the cache at `cache` holds a bake of the file at `input`, as it is now, with `config`:
+/// its identity (size, time, first bytes), the grid asked for, the medium, the bake settings, the
+/// coefficients' precision and the format version all match. What lets a batch skip a frame
+/// without reading its volume. A missing cache, or one that cannot be read as a current cache,
+/// is not current (it is baked again and replaced); a missing input is an error.
+pub fn cache_is_current(input: &Path, cache: &Path, config: &BakeConfig) -> Result<bool> {
+    let source = Source::of(input)?;
+    if !cache.exists() {
+        return Ok(false);
+    }
+    Ok(cache::read_header(cache)
+        .ok()
+        .flatten()
+        .is_some_and(|h| baked_from(&h, &source, config)))
+}
+
+/// Whether the header `h` describes a bake of `source` with `config`.
+fn baked_from(h: &Header, source: &Source, config: &BakeConfig) -> bool {
+    h.source == *source
+        && h.requested_grid == config.grid
+        && h.settings().as_ref() == Some(&config.settings)
+        && h.sigma_t == config.medium.sigma_t
+        && h.albedo == config.medium.albedo
+        && (h.coefficients == "f16") == config.half
 }
 
 /// How to path-trace.

@@ -9,6 +9,7 @@ use serde_json::json;
 use super::args::{BakeCmd, GlobalArgs};
 use vscatter::io::atomic::check_writable;
 use vscatter::io::meminfo::peak_memory;
+use vscatter::io::progress::Bars;
 use vscatter::scene::{BakeConfig, Scene};
 use vscatter::transfer::BakeStats;
 use vscatter::Result;
@@ -69,7 +70,12 @@ pub fn prepare_bake(
     }
     plan.check_budget(&scene.field, &config.settings, config.max_memory)?;
     warn(&scene.warnings(Some(config.settings.scale)));
-    Ok(Some(scene.bake(config, global.quiet)))
+    Ok(Some(scene.bake(
+        config,
+        &Bars {
+            quiet: global.quiet,
+        },
+    )))
 }
 
 /// Prints each warning as one line. `--quiet` hides progress, never a warning.

@@ -30,39 +30,54 @@ use crate::volume::grid::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// Bumped whenever the layout or the meaning of the data changes; older caches are refused with a
 /// message to re-bake. 2: T_ri holds values fitted for trilinear interpolation (`transfer::fit`),
-/// not point values, and F_ms what the fit took from them.
-pub const VERSION: u32 = 2;
+/// not point values, and F_ms what the fit took from them. 3: the source is identified by size,
+/// modification time in nanoseconds and a hash of its first bytes; the grid asked for and the
+/// framing box are recorded.
+pub const VERSION: u32 = 3;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
 const LEAF_BYTES: u64 = 12 + 64 + 4 * LEAF_VOXELS as u64;
 const TILE_BYTES: u64 = 16;
 
-/// Where the baked volume came from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// Bytes at the start of a source file hashed into its identity: a VDB's header and grid
+/// descriptors, where a re-export differs even when size and time do not.
+const IDENTITY_BYTES: u64 = 64 << 10;
+
+/// The identity of a bake's source file: what tells, without reading the volume, whether a cache
+/// was baked from the file as it is now.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Source {
     pub name: String,
-    pub grid: String,
     pub size: u64,
-    /// Seconds since the Unix epoch, 0 when unknown.
-    pub mtime: u64,
+    /// Nanoseconds since the Unix epoch (0 when unknown): a rewrite within one second still counts.
+    pub mtime_ns: u64,
+    /// xxh3 of the first [`IDENTITY_BYTES`] bytes.
+    pub header_hash: u64,
 }
 
 impl Source {
-    /// Name, size and modification time of a bake's source file, and the grid baked.
-    pub fn of(path: &Path, grid: &str) -> Result<Source> {
-        let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
-        let mtime = meta
+    /// The identity of the file at `path` as it is now.
+    pub fn of(path: &Path) -> Result<Source> {
+        use std::io::Read;
+        let io = |e| Error::io(path, e);
+        let file = std::fs::File::open(path).map_err(io)?;
+        let meta = file.metadata().map_err(io)?;
+        let mtime_ns = meta
             .modified()
             .ok()
             .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-            .map_or(0, |d| d.as_secs());
+            .map_or(0, |d| d.as_nanos() as u64);
+        let mut head = Vec::new();
+        file.take(IDENTITY_BYTES)
+            .read_to_end(&mut head)
+            .map_err(io)?;
         Ok(Source {
             name: path
                 .file_name()
                 .map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
-            grid: grid.to_string(),
             size: meta.len(),
-            mtime,
+            mtime_ns,
+            header_hash: xxhash_rust::xxh3::xxh3_64(&head),
         })
     }
 }
@@ -79,6 +94,12 @@ pub struct Header {
     pub single_scatter: bool,
     pub seed: u64,
     pub source: Source,
+    /// The grid baked, and the one `--grid` asked for (`None`: the default choice).
+    pub grid: String,
+    pub requested_grid: Option<String>,
+    /// World box a framing camera looks at ([`crate::render::framing_bounds`]), so a sequence's
+    /// camera can frame every frame from the headers alone.
+    pub framing: Option<[[f32; 3]; 2]>,
     pub voxel_scale: [f64; 3],
     pub translation: [f64; 3],
     pub leaves: u64,
@@ -106,7 +127,7 @@ impl Header {
         VERSION,
         indicatif::HumanBytes(size),
         h.source.name,
-        h.source.grid,
+        h.grid,
         h.source.size,
         h.sigma_t,
         h.albedo,
@@ -205,12 +226,20 @@ fn put_coefficients(w: &mut impl Write, values: &[f32], half: bool) -> std::io::
     Ok(())
 }
 
+/// Where a bake's density came from: the file, the grid read, and the grid asked for.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Origin {
+    pub source: Source,
+    pub grid: String,
+    pub requested_grid: Option<String>,
+}
+
 /// Builds the header for a bake of `density` into `transfer`.
 pub fn header(
     density: &SparseGrid,
     transfer: &Transfer,
     settings: &BakeSettings,
-    source: Source,
+    origin: Origin,
     half: bool,
 ) -> Header {
     let t = density.transform;
@@ -223,7 +252,11 @@ pub fn header(
         lattice: settings.lattice.directions(),
         single_scatter: settings.single_scatter,
         seed: settings.seed,
-        source,
+        source: origin.source,
+        grid: origin.grid,
+        requested_grid: origin.requested_grid,
+        framing: crate::render::framing_bounds(density)
+            .map(|(lo, hi)| [lo.to_array(), hi.to_array()]),
         voxel_scale: t.scale.to_array(),
         translation: t.translation.to_array(),
         leaves: density.leaf_count() as u64,
@@ -396,6 +429,25 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
     Ok((header, end))
 }
 
+/// Reads only the header of the cache at `path`, checked against the file's length (not the
+/// checksum): enough to tell whether the cache is current without reading its data. `None` for
+/// a cache of an older format (stale: what a bake computes changed); an error for anything else
+/// that is not a cache of this format.
+pub fn read_header(path: &Path) -> Result<Option<Header>> {
+    use std::io::Read;
+    if format_version(path)?.is_some_and(|v| v < VERSION) {
+        return Ok(None);
+    }
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    let mut head = Vec::new();
+    file.take(FIXED as u64 + MAX_HEADER)
+        .read_to_end(&mut head)
+        .map_err(|e| Error::io(path, e))?;
+    let (header, _) = parse_header(&head, len).map_err(|m| damaged(path, m))?;
+    Ok(Some(header))
+}
+
 /// Reads and verifies a whole cache.
 pub fn read(path: &Path) -> Result<Cache> {
     let data = std::fs::read(path).map_err(|e| Error::io(path, e))?;
@@ -512,13 +564,17 @@ mod tests {
             single_scatter: false,
             seed: 7,
         };
-        let source = Source {
-            name: "x.vdb".into(),
+        let origin = Origin {
+            source: Source {
+                name: "x.vdb".into(),
+                size: 1,
+                mtime_ns: 2,
+                header_hash: 3,
+            },
             grid: "density".into(),
-            size: 1,
-            mtime: 2,
+            requested_grid: None,
         };
-        let h = header(&g, &transfer, &settings, source, false);
+        let h = header(&g, &transfer, &settings, origin, false);
         (g, transfer, h)
     }
 

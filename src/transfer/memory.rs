@@ -16,6 +16,18 @@ const PROCESS_BASELINE: u64 = 24 << 20;
 /// and other processes.
 pub const DEFAULT_MEMORY_SHARE: f64 = 0.8;
 
+/// The budget of work given no `--max-memory`: [`DEFAULT_MEMORY_SHARE`] of what the system can
+/// still give, or of the control group's limit where that is smaller (a container, a farm job);
+/// `None` where neither is known.
+pub fn default_limit() -> Option<u64> {
+    use crate::io::meminfo::{available_memory, cgroup_limit};
+    let room = match (available_memory(), cgroup_limit()) {
+        (Some(a), Some(c)) => Some(a.min(c)),
+        (a, c) => a.or(c),
+    };
+    room.map(|r| (r as f64 * DEFAULT_MEMORY_SHARE) as u64)
+}
+
 /// Peak memory of a bake, estimated before anything big is allocated.
 #[derive(Debug, Clone, Copy)]
 pub struct MemoryEstimate {
@@ -96,8 +108,7 @@ impl BakePlan {
         )
     }
 
-    /// Refuses a bake estimated above `limit` (`None`: [`DEFAULT_MEMORY_SHARE`] of the memory
-    /// the system can still give), naming the `--scale`, `--bands` and `--lattice` that would
+    /// Refuses a bake estimated above `limit` (`None`: [`default_limit`]), naming the `--scale`, `--bands` and `--lattice` that would
     /// need less.
     pub fn check_budget(
         &self,
@@ -105,9 +116,7 @@ impl BakePlan {
         settings: &BakeSettings,
         limit: Option<u64>,
     ) -> Result<()> {
-        let limit = limit.or_else(|| {
-            crate::io::meminfo::available_memory().map(|a| (a as f64 * DEFAULT_MEMORY_SHARE) as u64)
-        });
+        let limit = limit.or_else(default_limit);
         let Some(limit) = limit.filter(|l| self.estimate.total() > *l) else {
             return Ok(());
         };
@@ -143,12 +152,9 @@ impl BakePlan {
 }
 
 /// Refuses a render whose suns' shadow volumes and fluences (`sun_bytes`), beside the density
-/// and transfer it holds (`held`), are estimated above `limit` (`None`: [`DEFAULT_MEMORY_SHARE`]
-/// of the memory the system can still give).
+/// and transfer it holds (`held`), are estimated above `limit` (`None`: [`default_limit`]).
 pub fn check_sun_budget(sun_bytes: u64, held: u64, limit: Option<u64>) -> Result<()> {
-    let limit = limit.or_else(|| {
-        crate::io::meminfo::available_memory().map(|a| (a as f64 * DEFAULT_MEMORY_SHARE) as u64)
-    });
+    let limit = limit.or_else(default_limit);
     match limit.filter(|l| sun_bytes + held > *l) {
         None => Ok(()),
         Some(limit) => Err(Error::Runtime(format!(

@@ -89,7 +89,7 @@ pub fn bake(
     field: &DensityField,
     medium: Medium,
     settings: &BakeSettings,
-    quiet: bool,
+    progress: &dyn crate::io::progress::Phases,
 ) -> (Transfer, BakeStats) {
     let mut stats = BakeStats::default();
     let clock = std::time::Instant::now();
@@ -102,7 +102,7 @@ pub fn bake(
     // T_ri twice: at the nodes (the point values the lattice's light is balanced against) and
     // over the density around them (the footprint means the renderer's values are fitted to).
     let clock = std::time::Instant::now();
-    let bar = crate::io::progress::bar(2 * layout.len() as u64, "single", quiet);
+    let bar = progress.phase("single", 2 * layout.len() as u64);
     let depth = OpticalDepth::new(field, medium.sigma_t, true);
     let single = |origins| {
         let single = single::SingleSettings {
@@ -123,6 +123,7 @@ pub fn bake(
     let f_ms = match settings.single_scatter {
         true => vec![0.0; t_ri.len()],
         false => {
+            progress.phase("lattice", 0);
             let first = lattice::Source {
                 t_ri: &point,
                 bands: settings.bands,

@@ -76,7 +76,12 @@ fn furnace_bake(file: &str, sigma_t: f32, k: i32) -> (SparseGrid, Transfer) {
         sigma_t,
         albedo: 1.0,
     };
-    let (t, _) = bake(&DensityField::new(d.clone()), medium, &settings(1, k), true);
+    let (t, _) = bake(
+        &DensityField::new(d.clone()),
+        medium,
+        &settings(1, k),
+        &crate::io::progress::Bars { quiet: true },
+    );
     (d, t)
 }
 
@@ -138,7 +143,12 @@ fn albedo_zero_scatters_nothing() {
         sigma_t: 0.5,
         albedo: 0.0,
     };
-    let (t, _) = bake(&f, medium, &settings(2, 6), true);
+    let (t, _) = bake(
+        &f,
+        medium,
+        &settings(2, 6),
+        &crate::io::progress::Bars { quiet: true },
+    );
     assert!(t.f_ms.iter().all(|v| *v == 0.0));
     assert!(t.t_ri.iter().any(|v| *v != 0.0));
 }
@@ -188,7 +198,12 @@ fn light_from_the_zenith_lights_the_top() {
         sigma_t: 0.3,
         albedo: 0.9,
     };
-    let (t, _) = bake(&f, medium, &settings(bands, 4), true);
+    let (t, _) = bake(
+        &f,
+        medium,
+        &settings(bands, 4),
+        &crate::io::progress::Bars { quiet: true },
+    );
     let (up, down) = upper_lower(&t.t_ri, &t.layout, &env, coeffs);
     assert!(up > 2.0 * down, "T_ri: upper {up} lower {down}");
     let (up, down) = upper_lower(&t.f_ms, &t.layout, &env, coeffs);
@@ -348,7 +363,12 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
         samples: 1024,
         ..settings(1, 6)
     };
-    let (t, _) = bake(&f, medium, &settings, true);
+    let (t, _) = bake(
+        &f,
+        medium,
+        &settings,
+        &crate::io::progress::Bars { quiet: true },
+    );
     let plain = OpticalDepth::new(&f, medium.sigma_t, false);
     let point = bake_single(
         &d,
