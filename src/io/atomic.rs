@@ -18,24 +18,63 @@ pub fn temp_path(path: &Path) -> Result<PathBuf> {
             io::Error::new(io::ErrorKind::InvalidInput, "not a file name"),
         )
     })?;
-    let host: String = gethostname::gethostname()
-        .to_string_lossy()
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
     let tmp = format!(
         ".{}.{}.{}.tmp",
         name.to_string_lossy(),
-        host,
+        host_tag(),
         std::process::id()
     );
     Ok(path.with_file_name(tmp))
+}
+
+/// This host's name as it appears in temporary names: letters, digits and `-`, the rest `_`, so
+/// the name splits cleanly at its dots.
+fn host_tag() -> String {
+    gethostname::gethostname()
+        .to_string_lossy()
+        .chars()
+        .map(|c| match c.is_ascii_alphanumeric() || c == '-' {
+            true => c,
+            false => '_',
+        })
+        .collect()
+}
+
+/// Removes the temporary files in `dir` left by processes of this host that are gone (killed,
+/// crashed, out of power), so a rerun finishes the job clean. A live process's temporary file, and
+/// any other host's (its process may be alive there; this host cannot tell), are left alone.
+/// Returns what it removed.
+pub fn remove_stale_temporaries(dir: &Path) -> Result<Vec<PathBuf>> {
+    let host = host_tag();
+    let mut removed = Vec::new();
+    let entries = fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some((pid, tag)) = temporary_owner(&name) else {
+            continue;
+        };
+        if tag == host && pid != std::process::id() && !process_alive(pid) {
+            let path = entry.path();
+            if fs::remove_file(&path).is_ok() {
+                removed.push(path);
+            }
+        }
+    }
+    Ok(removed)
+}
+
+/// The pid and host tag of a temporary name `.NAME.HOST.PID.tmp`.
+fn temporary_owner(name: &str) -> Option<(u32, &str)> {
+    let rest = name.strip_prefix('.')?.strip_suffix(".tmp")?;
+    let (rest, pid) = rest.rsplit_once('.')?;
+    let (_, host) = rest.rsplit_once('.')?;
+    Some((pid.parse().ok()?, host))
+}
+
+/// Whether process `pid` runs on this host (Linux: its `/proc` entry exists). Elsewhere every
+/// process counts as alive, so nothing is removed that might be in use.
+fn process_alive(pid: u32) -> bool {
+    !Path::new("/proc/self").exists() || Path::new(&format!("/proc/{pid}")).exists()
 }
 
 /// Checks, before any long work, that `path` can be written: its directory exists and accepts
@@ -107,6 +146,32 @@ mod tests {
         assert!(write_atomic(&out, |_| Err(io::Error::other("no"))).is_err());
         assert_eq!(fs::read(&out).unwrap(), b"old");
         assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn stale_temporaries_of_dead_processes_on_this_host_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let host = host_tag();
+        // A pid above Linux's maximum (2²²) belongs to no process.
+        let dead = dir.path().join(format!(".a.vtc.{host}.4194999.tmp"));
+        let live = dir.path().join(format!(".b.vtc.{host}.1.tmp"));
+        let other_host = dir.path().join(".c.vtc.farmnode-7.4194999.tmp");
+        let unrelated = dir.path().join("d.vtc");
+        for p in [&dead, &live, &other_host, &unrelated] {
+            fs::write(p, b"x").unwrap();
+        }
+        assert_eq!(
+            remove_stale_temporaries(dir.path()).unwrap(),
+            vec![dead.clone()]
+        );
+        assert!(!dead.exists() && live.exists() && other_host.exists() && unrelated.exists());
+        assert_eq!(temporary_owner(".x.1001.vtc.h-1.42.tmp"), Some((42, "h-1")));
+        let mine = temp_path(Path::new("/o/x.vtc")).unwrap();
+        let mine = mine.file_name().unwrap().to_string_lossy().into_owned();
+        assert_eq!(
+            temporary_owner(&mine),
+            Some((std::process::id(), host.as_str()))
+        );
     }
 
     #[test]

@@ -19,6 +19,23 @@ pub fn available_memory() -> Option<u64> {
     proc_kb("/proc/meminfo", "MemAvailable:")
 }
 
+/// The memory limit of this process's control group (a container, a farm job), when it has one:
+/// cgroup v2 `memory.max`, else v1 `memory.limit_in_bytes` (which reports "no limit" as a huge
+/// number, taken as none).
+pub fn cgroup_limit() -> Option<u64> {
+    let read = |p: &str| std::fs::read_to_string(p).ok();
+    let v2 = read("/proc/self/cgroup").and_then(|c| {
+        let path = c.lines().find_map(|l| l.strip_prefix("0::"))?.to_string();
+        read(&format!(
+            "/sys/fs/cgroup{}/memory.max",
+            path.trim_end_matches('/')
+        ))
+        .or_else(|| read("/sys/fs/cgroup/memory.max"))
+    });
+    let text = v2.or_else(|| read("/sys/fs/cgroup/memory/memory.limit_in_bytes"))?;
+    text.trim().parse::<u64>().ok().filter(|&b| b < 1 << 60)
+}
+
 /// This process's peak resident memory (`VmHWM`).
 pub fn peak_memory() -> Option<u64> {
     proc_kb("/proc/self/status", "VmHWM:")
