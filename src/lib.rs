@@ -6,6 +6,7 @@
 //! [`render`] (camera, relight, march), [`pathtrace`] (the ground truth), and [`scene`], the
 //! pipeline the commands call. [`io`] and [`math`] serve them all.
 
+pub mod batch;
 pub mod compare;
 pub mod error;
 pub mod io;

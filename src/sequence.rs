@@ -233,7 +233,7 @@ pub fn resolve(inputs: &[String], range: Option<FrameRange>) -> Result<Frames> {
             let paths = glob::glob(input)
                 .map_err(|e| Error::usage(format!("{input}: not a valid glob ({e})")))?;
             let mut matched: Vec<PathBuf> = paths.flatten().collect();
-            matched.sort_by(|a, b| natural_key(a).cmp(&natural_key(b)));
+            matched.sort_by_key(|p| natural_key(p));
             let matched: Vec<Frame> = matched
                 .into_iter()
                 .map(|path| Frame {

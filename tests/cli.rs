@@ -3,6 +3,8 @@
 
 #[path = "cli/bake.rs"]
 mod bake;
+#[path = "cli/batch.rs"]
+mod batch;
 #[path = "cli/env.rs"]
 mod env;
 #[path = "cli/pathtrace.rs"]

@@ -27,7 +27,8 @@ pub struct Cli {
 /// Flags every command takes.
 #[derive(Debug, Args)]
 pub struct GlobalArgs {
-    /// Worker threads (default: all cores, or SLURM_CPUS_PER_TASK when set).
+    /// Worker threads (default: the CPUs a farm job was given — SLURM_CPUS_PER_TASK, CUE_THREADS,
+    /// NSLOTS, PBS_NUM_PPN or LSB_DJOB_NUMPROC — else every core this process may use).
     #[arg(long, global = true, value_name = "N")]
     pub threads: Option<usize>,
     /// No progress bars.
@@ -46,6 +47,8 @@ pub enum Command {
     Env(EnvArgs),
     /// Bake a VDB density into a transfer cache (.vtc): single and multiple scattering.
     Bake(BakeCmd),
+    /// Bake many VDB frames (files, globs, cloud.####.vdb) into caches, skipping current ones.
+    Batch(BatchArgs),
     /// Render a volume lit by an environment, with multiple scattering (.exr or .png).
     Render(RenderArgs),
     /// Measure a render against a reference (e.g. the path tracer): relative RMSE over the volume.
@@ -75,6 +78,29 @@ pub struct BakeCmd {
     /// The cache to write (.vtc).
     #[arg(short, long, value_name = "OUT")]
     pub output: PathBuf,
+    #[command(flatten)]
+    pub bake: BakeArgs,
+}
+
+/// `vscatter batch INPUT… --out-dir DIR`.
+#[derive(Debug, Args)]
+pub struct BatchArgs {
+    /// VDB files, globs (`'v/*.vdb'`) or frame patterns (`cloud.####.vdb`, `cloud.%04d.vdb`,
+    /// `cloud.$F4.vdb`; quote them from the shell).
+    #[arg(required = true, value_name = "INPUT")]
+    pub inputs: Vec<String>,
+    /// Where the caches go, named after their inputs (`cloud.1001.vdb` → `DIR/cloud.1001.vtc`).
+    #[arg(long, value_name = "DIR")]
+    pub out_dir: PathBuf,
+    /// The frames of a pattern: FIRST-LAST[:STEP] (default: every file that matches).
+    #[arg(long, value_name = "FIRST-LAST[:STEP]", allow_hyphen_values = true)]
+    pub frames: Option<String>,
+    /// Take task K's share of N (1 ≤ K ≤ N): N farm tasks convert every frame exactly once.
+    #[arg(long, value_name = "K/N")]
+    pub shard: Option<String>,
+    /// Bake every frame, even where its cache is current.
+    #[arg(long)]
+    pub force: bool,
     #[command(flatten)]
     pub bake: BakeArgs,
 }
@@ -212,8 +238,17 @@ pub struct PngArgs {
     pub exposure: f32,
 }
 
+/// Where farm schedulers say how many CPUs a job was given: Slurm, OpenCue, Grid Engine, PBS, LSF.
+const FARM_CPU_VARIABLES: [&str; 5] = [
+    "SLURM_CPUS_PER_TASK",
+    "CUE_THREADS",
+    "NSLOTS",
+    "PBS_NUM_PPN",
+    "LSB_DJOB_NUMPROC",
+];
+
 impl GlobalArgs {
-    /// The worker thread count: `--threads`, else `SLURM_CPUS_PER_TASK`, else every core.
+    /// The worker thread count: `--threads`, else a farm job's CPUs, else every core.
     pub fn thread_count(&self) -> Result<usize> {
         if let Some(n) = self.threads {
             if n == 0 {
@@ -221,14 +256,12 @@ impl GlobalArgs {
             }
             return Ok(n);
         }
-        if let Ok(s) = std::env::var("SLURM_CPUS_PER_TASK") {
-            if let Ok(n) = s.trim().parse::<usize>() {
-                if n > 0 {
-                    return Ok(n);
-                }
-            }
-        }
-        Ok(std::thread::available_parallelism().map_or(1, |n| n.get()))
+        let farm = FARM_CPU_VARIABLES.iter().find_map(|v| {
+            let n = std::env::var(v).ok()?.trim().parse::<usize>().ok()?;
+            (n > 0).then_some(n)
+        });
+        // available_parallelism honours the affinity mask and a cgroup's CPU quota.
+        Ok(farm.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())))
     }
 }
 

@@ -3,6 +3,7 @@
 
 mod args;
 mod bake;
+mod batch;
 mod compare;
 mod env;
 mod info;
@@ -24,6 +25,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Info(args) => info::run(&args),
         Command::Env(args) => env::run(&args),
         Command::Bake(args) => bake::run(&args, &cli.global),
+        Command::Batch(args) => batch::run(&args, &cli.global, threads),
         Command::Render(args) => render::run(&args, &cli.global),
         Command::Compare(args) => compare::run(&args),
     }

@@ -1,0 +1,312 @@
+//! `vscatter batch`: resolve the frames, take this task's share, clear what dead runs left, and
+//! convert every frame whose cache is not current with [`vscatter::batch`] — with an overall
+//! progress bar on a terminal, one timestamped line per frame and phase in a farm log, a summary
+//! naming every frame that failed or is missing, and `--stats`.
+
+use std::collections::BTreeMap;
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant, SystemTime};
+
+use indicatif::{HumanBytes, ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use super::args::{BatchArgs, GlobalArgs};
+use vscatter::batch::{Batch, FrameReport, Report, Status};
+use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
+use vscatter::io::meminfo::peak_memory;
+use vscatter::scene::{cache_is_current, Scene};
+use vscatter::sequence::{self, FrameRange, Shard};
+use vscatter::transfer::memory::default_limit;
+use vscatter::{Error, Result};
+
+/// The memory budget when nothing says otherwise and the system does not tell (not Linux).
+const FALLBACK_MEMORY: u64 = 4 << 30;
+
+pub fn run(args: &BatchArgs, global: &GlobalArgs, threads: usize) -> Result<()> {
+    let config = args.bake.validate()?;
+    let range = args.frames.as_deref().map(FrameRange::parse).transpose()?;
+    let shard = args.shard.as_deref().map(Shard::parse).transpose()?;
+    let resolved = sequence::resolve(&args.inputs, range)?;
+    let outputs = sequence::outputs_in(&args.out_dir, &resolved.frames, "vtc")?;
+    let mut jobs: Vec<(PathBuf, PathBuf)> = resolved
+        .frames
+        .iter()
+        .map(|f| f.path.clone())
+        .zip(outputs)
+        .collect();
+    let mut missing = resolved.missing;
+    if let Some(shard) = shard {
+        jobs = shard.select(jobs);
+        missing = shard.select(missing);
+    }
+    // The output directory is made and tried before any bake, so a typo costs nothing.
+    std::fs::create_dir_all(&args.out_dir)
+        .map_err(|e| Error::Runtime(format!("{}: cannot be made ({e})", args.out_dir.display())))?;
+    check_writable(&args.out_dir.join("batch"))?;
+    for gone in remove_stale_temporaries(&args.out_dir)? {
+        if !global.quiet {
+            eprintln!(
+                "removed {} (left by a process that is gone)",
+                gone.display()
+            );
+        }
+    }
+    if !missing.is_empty() {
+        eprintln!(
+            "vscatter: warning: {} frames missing: {}",
+            missing.len(),
+            names(&missing)
+        );
+    }
+    if args.bake.dry_run {
+        return dry_run(&jobs, &config, args.force);
+    }
+
+    let memory = config
+        .max_memory
+        .or_else(default_limit)
+        .unwrap_or(FALLBACK_MEMORY);
+    let batch = Batch {
+        jobs: &jobs,
+        config: &config,
+        force: args.force,
+        memory,
+        workers: threads,
+    };
+    let clock = Instant::now();
+    let progress = BatchProgress::new(&jobs, global.quiet);
+    let reports = batch.run(&progress);
+    progress.finish();
+
+    let count = |s: &str| reports.iter().filter(|r| r.status.name() == s).count();
+    let failed: Vec<&FrameReport> = reports
+        .iter()
+        .filter(|r| matches!(r.status, Status::Failed(_)))
+        .collect();
+    if !global.quiet {
+        eprintln!(
+            "batch: {} frames in {:.1} s: {} baked, {} current, {} failed, {} missing",
+            jobs.len() + missing.len(),
+            clock.elapsed().as_secs_f64(),
+            count("baked"),
+            count("current"),
+            failed.len(),
+            missing.len()
+        );
+    }
+    if global.stats {
+        let frames: Vec<_> = reports.iter().map(frame_json).collect();
+        let j = json!({
+            "command": "batch",
+            "frames": frames,
+            "missing": missing.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+            "baked": count("baked"),
+            "current": count("current"),
+            "failed": failed.len(),
+            "wall_seconds": clock.elapsed().as_secs_f64(),
+            "workers": threads.min(jobs.len()),
+            "memory_budget_bytes": memory,
+            "peak_memory_bytes": peak_memory(),
+        });
+        println!("{j}");
+    }
+    if failed.is_empty() && missing.is_empty() {
+        return Ok(());
+    }
+    let failed_paths: Vec<PathBuf> = failed.iter().map(|r| r.input.clone()).collect();
+    let mut what = Vec::new();
+    if !failed.is_empty() {
+        what.push(format!(
+            "{} failed ({})",
+            failed.len(),
+            names(&failed_paths)
+        ));
+    }
+    if !missing.is_empty() {
+        what.push(format!("{} missing ({})", missing.len(), names(&missing)));
+    }
+    Err(Error::Runtime(format!(
+        "batch incomplete: of {} frames, {}",
+        jobs.len() + missing.len(),
+        what.join(", ")
+    )))
+}
+
+/// `--dry-run`: what each frame would do, one line each, and nothing baked.
+fn dry_run(
+    jobs: &[(PathBuf, PathBuf)],
+    config: &vscatter::scene::BakeConfig,
+    force: bool,
+) -> Result<()> {
+    for (input, output) in jobs {
+        if !force && cache_is_current(input, output, config)? {
+            println!("{}: current ({})", input.display(), output.display());
+            continue;
+        }
+        let line = Scene::open(input, config)
+            .map(|scene| scene.plan(&config.settings).describe())
+            .unwrap_or_else(|e| format!("fails: {e}"));
+        println!("{} -> {}: {line}", input.display(), output.display());
+    }
+    Ok(())
+}
+
+/// The file names of `paths`, comma-separated (the directory is the same for a sequence).
+fn names(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .map(|p| {
+            p.file_name()
+                .map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into())
+        })
+        .collect::<Vec<String>>()
+        .join(", ")
+}
+
+fn frame_json(r: &FrameReport) -> serde_json::Value {
+    json!({
+        "input": r.input.display().to_string(),
+        "output": r.output.display().to_string(),
+        "status": r.status.name(),
+        "error": match &r.status { Status::Failed(e) => Some(e), _ => None },
+        "read_seconds": r.read_seconds,
+        "bake_seconds": r.bake_seconds,
+        "write_seconds": r.write_seconds,
+        "input_bytes": r.input_bytes,
+        "output_bytes": r.output_bytes,
+        "transfer_voxels": r.transfer_voxels,
+        "estimated_bytes": r.estimated_bytes,
+        "peak_memory_bytes": r.peak_memory,
+    })
+}
+
+/// How a batch shows its progress: a bar over the frames with each running frame's phase on a
+/// terminal; off a terminal (a farm log), one timestamped line per frame and phase; nothing but
+/// failures with `--quiet`.
+struct BatchProgress {
+    names: Vec<String>,
+    start: Instant,
+    done: AtomicUsize,
+    bar: Option<ProgressBar>,
+    plain: bool,
+    /// The phase of each frame in flight, for the bar's message.
+    running: Mutex<BTreeMap<usize, String>>,
+}
+
+impl BatchProgress {
+    fn new(jobs: &[(PathBuf, PathBuf)], quiet: bool) -> BatchProgress {
+        let terminal = std::io::stderr().is_terminal();
+        let bar = (!quiet && terminal).then(|| {
+            let style = ProgressStyle::with_template(
+                "{prefix:>7} [{elapsed_precise}] {bar:30} {pos}/{len} frames ({eta} left) {wide_msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar());
+            ProgressBar::new(jobs.len() as u64)
+                .with_style(style)
+                .with_prefix("batch")
+        });
+        BatchProgress {
+            names: jobs
+                .iter()
+                .map(|(i, _)| names(std::slice::from_ref(i)))
+                .collect(),
+            start: Instant::now(),
+            done: AtomicUsize::new(0),
+            bar,
+            plain: !quiet && !terminal,
+            running: Mutex::new(BTreeMap::new()),
+        }
+    }
+
+    /// `elapsed 12s, eta 1m 40s`: the ETA from the mean time of the frames finished so far.
+    fn timing(&self) -> String {
+        let elapsed = self.start.elapsed();
+        let done = self.done.load(Ordering::Relaxed);
+        let left = self.names.len() - done;
+        let eta = match done {
+            0 => "unknown".to_string(),
+            _ => seconds(elapsed.mul_f64(left as f64 / done as f64)),
+        };
+        format!("elapsed {}, eta {eta}", seconds(elapsed))
+    }
+
+    /// One line of a farm log: time, frame count, frame, what happened, timing.
+    fn line(&self, frame: usize, what: &str) {
+        eprintln!(
+            "{} [{}/{}] {} {what} ({})",
+            humantime::format_rfc3339_seconds(SystemTime::now()),
+            self.done.load(Ordering::Relaxed),
+            self.names.len(),
+            self.names[frame],
+            self.timing()
+        );
+    }
+
+    fn show_running(&self) {
+        if let Some(bar) = &self.bar {
+            let running = self.running.lock().unwrap_or_else(|e| e.into_inner());
+            let msg: Vec<String> = running
+                .iter()
+                .map(|(i, p)| format!("{}: {p}", self.names[*i]))
+                .collect();
+            bar.set_message(msg.join(", "));
+        }
+    }
+
+    fn finish(&self) {
+        if let Some(bar) = &self.bar {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// Whole seconds, as humans read them (`1m 40s`).
+fn seconds(d: Duration) -> String {
+    humantime::format_duration(Duration::from_secs(d.as_secs_f64().round() as u64)).to_string()
+}
+
+impl Report for BatchProgress {
+    fn phase(&self, frame: usize, phase: &str) {
+        self.running
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(frame, phase.to_string());
+        self.show_running();
+        if self.plain {
+            self.line(frame, phase);
+        }
+    }
+
+    fn done(&self, frame: usize, r: &FrameReport) {
+        self.done.fetch_add(1, Ordering::Relaxed);
+        self.running
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&frame);
+        let what = match &r.status {
+            Status::Baked => format!(
+                "baked -> {} ({}, {:.1} s)",
+                r.output.display(),
+                HumanBytes(r.output_bytes),
+                r.read_seconds + r.bake_seconds + r.write_seconds
+            ),
+            Status::Current => format!("current ({})", r.output.display()),
+            Status::Failed(e) => format!("FAILED: {e}"),
+        };
+        if let Some(bar) = &self.bar {
+            bar.inc(1);
+            if let Status::Failed(e) = &r.status {
+                bar.println(format!("{} failed: {e}", self.names[frame]));
+            }
+        } else if self.plain {
+            self.line(frame, &what);
+        } else if let Status::Failed(e) = &r.status {
+            // --quiet still says what failed, as it happens.
+            eprintln!("{} failed: {e}", self.names[frame]);
+        }
+        self.show_running();
+    }
+}
