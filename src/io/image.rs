@@ -66,6 +66,38 @@ pub struct WriteOptions {
     pub exposure: f32,
     /// EXR only.
     pub precision: ExrPrecision,
+    /// A fingerprint of what made the image, stored in it (an EXR attribute, a PNG text chunk)
+    /// so a sequence render can tell a current image from a stale one ([`read_fingerprint`]).
+    pub fingerprint: Option<u64>,
+}
+
+/// The name of the fingerprint in an EXR header and a PNG text chunk.
+const FINGERPRINT_KEY: &str = "vscatterFingerprint";
+
+/// The fingerprint stored in the image at `path` by [`ImageBuf::write`]; `None` when the file is
+/// missing, unreadable or has none.
+pub fn read_fingerprint(path: &Path) -> Option<u64> {
+    let text = match path.extension()?.to_string_lossy().to_ascii_lowercase().as_str() {
+        "exr" => {
+            let meta = exr::meta::MetaData::read_from_file(path, false).ok()?;
+            match meta.headers.first()?.own_attributes.other.get(&Text::from(FINGERPRINT_KEY))? {
+                exr::meta::attribute::AttributeValue::Text(t) => t.to_string(),
+                _ => return None,
+            }
+        }
+        "png" => {
+            let file = std::io::BufReader::new(std::fs::File::open(path).ok()?);
+            let reader = png::Decoder::new(file).read_info().ok()?;
+            let chunk = reader
+                .info()
+                .uncompressed_latin1_text
+                .iter()
+                .find(|c| c.keyword == FINGERPRINT_KEY)?;
+            chunk.text.clone()
+        }
+        _ => return None,
+    };
+    u64::from_str_radix(&text, 16).ok()
 }
 
 impl ImageBuf {
@@ -97,8 +129,8 @@ impl ImageBuf {
             .extension()
             .map(|e| e.to_string_lossy().to_ascii_lowercase());
         match ext.as_deref() {
-            Some("exr") => self.write_exr(path, options.precision),
-            Some("png") => self.write_png(path, options.exposure),
+            Some("exr") => self.write_exr(path, options.precision, options.fingerprint),
+            Some("png") => self.write_png(path, options.exposure, options.fingerprint),
             _ => Err(Error::usage(format!(
                 "{}: output must end in .exr or .png",
                 path.display()
@@ -150,7 +182,12 @@ impl ImageBuf {
     /// are assembled from the buffers in place and compressed in parallel, [`EXR_BATCH_LINES`] at
     /// a time, while the previous batch is written out. The image writer extracts every line on
     /// one thread, which made a 1080p frame's write a quarter of the render's wall time.
-    pub fn write_exr(self, path: &Path, precision: ExrPrecision) -> Result<()> {
+    pub fn write_exr(
+        self,
+        path: &Path,
+        precision: ExrPrecision,
+        fingerprint: Option<u64>,
+    ) -> Result<()> {
         self.check()?;
         let (width, height) = (self.width, self.height);
         let views = self.channel_views();
@@ -170,7 +207,7 @@ impl ImageBuf {
                 BlockDescription::ScanLines,
                 LineOrder::Increasing,
             )
-            .with_attributes(LayerAttributes::default());
+            .with_attributes(layer_attributes(fingerprint));
         write_atomic(path, |w: &mut BufWriter<std::fs::File>| {
             exr::block::write(w, SmallVec::from_elem(header, 1), true, |meta, chunks| {
                 let blocks: Vec<(usize, BlockIndex)> =
@@ -244,7 +281,12 @@ impl ImageBuf {
     /// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve.
     /// Fully opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as
     /// PNG expects.
-    pub fn write_png(&self, path: &Path, exposure_ev: f32) -> Result<()> {
+    pub fn write_png(
+        &self,
+        path: &Path,
+        exposure_ev: f32,
+        fingerprint: Option<u64>,
+    ) -> Result<()> {
         self.check()?;
         let scale = exposure_ev.exp2();
         let opaque = self.rgba.iter().all(|p| p[3] >= 1.0);
@@ -264,7 +306,9 @@ impl ImageBuf {
         let (Ok(w32), Ok(h32)) = (u32::try_from(w), u32::try_from(h)) else {
             return Err(Error::Runtime(format!("{w}x{h} is too large for PNG")));
         };
-        write_atomic(path, |out| encode_png(out, w32, h32, opaque, &bytes))
+        write_atomic(path, |out| {
+            encode_png(out, w32, h32, opaque, &bytes, fingerprint)
+        })
     }
 }
 
@@ -298,12 +342,25 @@ fn block_bytes(
     data
 }
 
+/// The EXR layer's attributes: the fingerprint, when there is one.
+fn layer_attributes(fingerprint: Option<u64>) -> LayerAttributes {
+    let mut attributes = LayerAttributes::default();
+    if let Some(f) = fingerprint {
+        attributes.other.insert(
+            Text::from(FINGERPRINT_KEY),
+            exr::meta::attribute::AttributeValue::Text(Text::from(format!("{f:016x}").as_str())),
+        );
+    }
+    attributes
+}
+
 fn encode_png<W: Write + Seek>(
     out: &mut W,
     w: u32,
     h: u32,
     opaque: bool,
     bytes: &[u8],
+    fingerprint: Option<u64>,
 ) -> io::Result<()> {
     let mut enc = png::Encoder::new(out, w, h);
     enc.set_color(if opaque {
@@ -313,6 +370,10 @@ fn encode_png<W: Write + Seek>(
     });
     enc.set_depth(png::BitDepth::Eight);
     enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+    if let Some(f) = fingerprint {
+        enc.add_text_chunk(FINGERPRINT_KEY.into(), format!("{f:016x}"))
+            .map_err(png_to_io)?;
+    }
     let mut writer = enc.write_header().map_err(png_to_io)?;
     writer.write_image_data(bytes).map_err(png_to_io)?;
     writer.finish().map_err(png_to_io)
@@ -441,7 +502,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for precision in [ExrPrecision::Float, ExrPrecision::Half] {
             let path = dir.path().join("t.exr");
-            test_image().write_exr(&path, precision).unwrap();
+            test_image().write_exr(&path, precision, None).unwrap();
             let image = read_all_flat_layers_from_file(&path).unwrap();
             let channels = &image.layer_data[0].channel_data.list;
             let names: Vec<String> = channels.iter().map(|c| c.name.to_string()).collect();
@@ -474,6 +535,23 @@ mod tests {
     }
 
     #[test]
+    fn fingerprints_are_stored_in_exr_and_png() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["f.exr", "f.png"] {
+            let path = dir.path().join(name);
+            let options = WriteOptions {
+                fingerprint: Some(0xfeed_beef_0123_4567),
+                ..WriteOptions::default()
+            };
+            test_image().write(&path, &options).unwrap();
+            assert_eq!(read_fingerprint(&path), Some(0xfeed_beef_0123_4567), "{name}");
+            test_image().write(&path, &WriteOptions::default()).unwrap();
+            assert_eq!(read_fingerprint(&path), None, "{name}");
+        }
+        assert_eq!(read_fingerprint(&dir.path().join("missing.exr")), None);
+    }
+
+    #[test]
     fn mismatched_extra_layer_is_an_error() {
         let bad = [
             Layer {
@@ -497,7 +575,7 @@ mod tests {
             let mut img = test_image();
             img.layers.push(layer);
             assert!(img
-                .write_exr(&dir.path().join("x.exr"), ExrPrecision::Float)
+                .write_exr(&dir.path().join("x.exr"), ExrPrecision::Float, None)
                 .is_err());
         }
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);

@@ -5,6 +5,7 @@
 pub(crate) mod camera;
 pub(crate) mod film;
 mod march;
+pub mod motion;
 mod relight;
 pub mod sunlight;
 
