@@ -248,7 +248,8 @@ mod tests {
         std::thread::scope(|s| {
             let waiter = s.spawn(|| {
                 let _h = b.hold(5, || ());
-                *b.used.lock().unwrap()
+                let used = *b.used.lock().unwrap();
+                used
             });
             std::thread::sleep(std::time::Duration::from_millis(50));
             drop(first);

@@ -7,6 +7,8 @@ mod bake;
 mod batch;
 #[path = "cli/env.rs"]
 mod env;
+#[path = "cli/farm.rs"]
+mod farm;
 #[path = "cli/pathtrace.rs"]
 mod pathtrace;
 #[path = "cli/render.rs"]

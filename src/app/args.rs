@@ -25,7 +25,7 @@ pub struct Cli {
 }
 
 /// Flags every command takes.
-#[derive(Debug, Args)]
+#[derive(Debug, Clone, Args)]
 pub struct GlobalArgs {
     /// Worker threads (default: the CPUs a farm job was given — SLURM_CPUS_PER_TASK, CUE_THREADS,
     /// NSLOTS, PBS_NUM_PPN or LSB_DJOB_NUMPROC — else every core this process may use).
@@ -49,8 +49,9 @@ pub enum Command {
     Bake(BakeCmd),
     /// Bake many VDB frames (files, globs, cloud.####.vdb) into caches, skipping current ones.
     Batch(BatchArgs),
-    /// Render a volume lit by an environment, with multiple scattering (.exr or .png).
-    Render(RenderArgs),
+    /// Render a volume lit by an environment, with multiple scattering (.exr or .png); or a
+    /// sequence of them.
+    Render(Box<RenderArgs>),
     /// Measure a render against a reference (e.g. the path tracer): relative RMSE over the volume.
     Compare(CompareArgs),
 }
@@ -266,17 +267,40 @@ impl GlobalArgs {
 }
 
 /// `vscatter render IN -o OUT.(exr|png)`.
-#[derive(Debug, Args)]
+#[derive(Debug, Clone, Args)]
 pub struct RenderArgs {
-    /// The volume: a VDB (its transfer is baked first, with the bake options) or a .vtc cache.
+    /// The volume: a VDB (its transfer is baked first, with the bake options) or a .vtc cache;
+    /// or a sequence of them, as a frame pattern (`cache.####.vtc`) or a glob.
     #[arg(value_name = "IN")]
-    pub input: PathBuf,
-    /// The image to write: .exr (linear RGBA plus direct, indirect and depth layers) or .png.
+    pub input: String,
+    /// The image to write: .exr (linear RGBA plus direct, indirect and depth layers) or .png; for
+    /// a sequence, a frame pattern (`img.####.exr`).
     #[arg(short, long, value_name = "OUT")]
     pub output: PathBuf,
-    /// Latlong environment (.exr or .hdr), or `sky` for the built-in sky.
+    /// Latlong environment (.exr or .hdr), or `sky` for the built-in sky; several, separated by
+    /// commas, render an image under each (`img.ENVNAME.####.exr`).
     #[arg(long, value_name = "ENV", default_value = vscatter::light::env::SKY_SPEC)]
     pub env: String,
+    /// The frames of a pattern: FIRST-LAST[:STEP] (default: every file that matches).
+    #[arg(long, value_name = "FIRST-LAST[:STEP]", allow_hyphen_values = true)]
+    pub frames: Option<String>,
+    /// Take task K's share of N of a sequence's frames (1 ≤ K ≤ N).
+    #[arg(long, value_name = "K/N")]
+    pub shard: Option<String>,
+    /// Render every image of a sequence, even those already made with these settings.
+    #[arg(long)]
+    pub force: bool,
+    /// Orbit the camera this many degrees about the volume's centre over the sequence.
+    #[arg(
+        long,
+        value_name = "DEG",
+        allow_negative_numbers = true,
+        conflicts_with = "camera_path"
+    )]
+    pub orbit: Option<f32>,
+    /// A camera path: lines of `FRAME PX PY PZ LX LY LZ FOV`, interpolated linearly.
+    #[arg(long, value_name = "FILE")]
+    pub camera_path: Option<PathBuf>,
     /// Multiplies the environment's radiance.
     #[arg(
         long,
@@ -385,6 +409,7 @@ impl RenderArgs {
     /// How the image is written: PNG exposure, EXR precision.
     pub fn write_options(&self) -> WriteOptions {
         WriteOptions {
+            fingerprint: None,
             exposure: self.png.exposure,
             precision: match self.exr_half {
                 true => ExrPrecision::Half,

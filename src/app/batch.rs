@@ -3,17 +3,14 @@
 //! progress bar on a terminal, one timestamped line per frame and phase in a farm log, a summary
 //! naming every frame that failed or is missing, and `--stats`.
 
-use std::collections::BTreeMap;
-use std::io::IsTerminal;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::Instant;
 
-use indicatif::{HumanBytes, ProgressBar, ProgressStyle};
+use indicatif::HumanBytes;
 use serde_json::json;
 
 use super::args::{BatchArgs, GlobalArgs};
+use super::progress::{names, FrameProgress};
 use vscatter::batch::{Batch, FrameReport, Report, Status};
 use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
 use vscatter::io::meminfo::peak_memory;
@@ -77,7 +74,8 @@ pub fn run(args: &BatchArgs, global: &GlobalArgs, threads: usize) -> Result<()> 
         workers: threads,
     };
     let clock = Instant::now();
-    let progress = BatchProgress::new(&jobs, global.quiet);
+    let inputs: Vec<PathBuf> = jobs.iter().map(|(i, _)| i.clone()).collect();
+    let progress = FrameProgress::new(&inputs, "batch", global.quiet);
     let reports = batch.run(&progress);
     progress.finish();
 
@@ -154,18 +152,6 @@ fn dry_run(
     Ok(())
 }
 
-/// The file names of `paths`, comma-separated (the directory is the same for a sequence).
-fn names(paths: &[PathBuf]) -> String {
-    paths
-        .iter()
-        .map(|p| {
-            p.file_name()
-                .map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into())
-        })
-        .collect::<Vec<String>>()
-        .join(", ")
-}
-
 fn frame_json(r: &FrameReport) -> serde_json::Value {
     json!({
         "input": r.input.display().to_string(),
@@ -183,109 +169,12 @@ fn frame_json(r: &FrameReport) -> serde_json::Value {
     })
 }
 
-/// How a batch shows its progress: a bar over the frames with each running frame's phase on a
-/// terminal; off a terminal (a farm log), one timestamped line per frame and phase; nothing but
-/// failures with `--quiet`.
-struct BatchProgress {
-    names: Vec<String>,
-    start: Instant,
-    done: AtomicUsize,
-    bar: Option<ProgressBar>,
-    plain: bool,
-    /// The phase of each frame in flight, for the bar's message.
-    running: Mutex<BTreeMap<usize, String>>,
-}
-
-impl BatchProgress {
-    fn new(jobs: &[(PathBuf, PathBuf)], quiet: bool) -> BatchProgress {
-        let terminal = std::io::stderr().is_terminal();
-        let bar = (!quiet && terminal).then(|| {
-            let style = ProgressStyle::with_template(
-                "{prefix:>7} [{elapsed_precise}] {bar:30} {pos}/{len} frames ({eta} left) {wide_msg}",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar());
-            ProgressBar::new(jobs.len() as u64)
-                .with_style(style)
-                .with_prefix("batch")
-        });
-        BatchProgress {
-            names: jobs
-                .iter()
-                .map(|(i, _)| names(std::slice::from_ref(i)))
-                .collect(),
-            start: Instant::now(),
-            done: AtomicUsize::new(0),
-            bar,
-            plain: !quiet && !terminal,
-            running: Mutex::new(BTreeMap::new()),
-        }
-    }
-
-    /// `elapsed 12s, eta 1m 40s`: the ETA from the mean time of the frames finished so far.
-    fn timing(&self) -> String {
-        let elapsed = self.start.elapsed();
-        let done = self.done.load(Ordering::Relaxed);
-        let left = self.names.len() - done;
-        let eta = match done {
-            0 => "unknown".to_string(),
-            _ => seconds(elapsed.mul_f64(left as f64 / done as f64)),
-        };
-        format!("elapsed {}, eta {eta}", seconds(elapsed))
-    }
-
-    /// One line of a farm log: time, frame count, frame, what happened, timing.
-    fn line(&self, frame: usize, what: &str) {
-        eprintln!(
-            "{} [{}/{}] {} {what} ({})",
-            humantime::format_rfc3339_seconds(SystemTime::now()),
-            self.done.load(Ordering::Relaxed),
-            self.names.len(),
-            self.names[frame],
-            self.timing()
-        );
-    }
-
-    fn show_running(&self) {
-        if let Some(bar) = &self.bar {
-            let running = self.running.lock().unwrap_or_else(|e| e.into_inner());
-            let msg: Vec<String> = running
-                .iter()
-                .map(|(i, p)| format!("{}: {p}", self.names[*i]))
-                .collect();
-            bar.set_message(msg.join(", "));
-        }
-    }
-
-    fn finish(&self) {
-        if let Some(bar) = &self.bar {
-            bar.finish_and_clear();
-        }
-    }
-}
-
-/// Whole seconds, as humans read them (`1m 40s`).
-fn seconds(d: Duration) -> String {
-    humantime::format_duration(Duration::from_secs(d.as_secs_f64().round() as u64)).to_string()
-}
-
-impl Report for BatchProgress {
+impl Report for FrameProgress {
     fn phase(&self, frame: usize, phase: &str) {
-        self.running
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(frame, phase.to_string());
-        self.show_running();
-        if self.plain {
-            self.line(frame, phase);
-        }
+        FrameProgress::phase(self, frame, phase);
     }
 
     fn done(&self, frame: usize, r: &FrameReport) {
-        self.done.fetch_add(1, Ordering::Relaxed);
-        self.running
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(&frame);
         let what = match &r.status {
             Status::Baked => format!(
                 "baked -> {} ({}, {:.1} s)",
@@ -294,19 +183,12 @@ impl Report for BatchProgress {
                 r.read_seconds + r.bake_seconds + r.write_seconds
             ),
             Status::Current => format!("current ({})", r.output.display()),
-            Status::Failed(e) => format!("FAILED: {e}"),
+            Status::Failed(_) => String::new(),
         };
-        if let Some(bar) = &self.bar {
-            bar.inc(1);
-            if let Status::Failed(e) = &r.status {
-                bar.println(format!("{} failed: {e}", self.names[frame]));
-            }
-        } else if self.plain {
-            self.line(frame, &what);
-        } else if let Status::Failed(e) = &r.status {
-            // --quiet still says what failed, as it happens.
-            eprintln!("{} failed: {e}", self.names[frame]);
-        }
-        self.show_running();
+        let failure = match &r.status {
+            Status::Failed(e) => Some(e.as_str()),
+            _ => None,
+        };
+        FrameProgress::done(self, frame, &what, failure);
     }
 }

@@ -7,6 +7,7 @@ mod batch;
 mod compare;
 mod env;
 mod info;
+mod progress;
 mod render;
 
 pub use args::Cli;

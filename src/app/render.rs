@@ -1,84 +1,462 @@
-//! `vscatter render`: volume in, image out. Flags are checked (output path included) before any
-//! work; then the scene is opened, baked if it has no transfer, and rendered with the transfer or
-//! the path tracer; the EXR (RGBA plus direct, indirect and depth layers) or PNG is written
-//! atomically.
+//! `vscatter render`: volume in, image out — or a sequence in, images out. Flags are checked
+//! (output paths included) before any work; then each frame's scene is opened, baked if it has no
+//! transfer, and rendered with the transfer or the path tracer under each map; the EXR (RGBA plus
+//! direct, indirect and depth layers) or PNG is written atomically with a fingerprint of what made
+//! it, so a rerun of a sequence skips the images that are current.
 
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use glam::Vec3;
 use indicatif::{HumanBytes, ProgressBar};
 use serde_json::{json, Value};
 
 use super::args::{GlobalArgs, Method, RenderArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn};
+use super::progress::{names, FrameProgress};
 use vscatter::io::atomic::check_writable;
+use vscatter::io::image::{read_fingerprint, WriteOptions};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress;
 use vscatter::light::Lighting;
-use vscatter::render::{Camera, Frame, MarchSettings};
+use vscatter::render::motion::Motion;
+use vscatter::render::{framing_bounds, Camera, CameraSpec, Frame, MarchSettings};
 use vscatter::scene::{BakeConfig, Scene, TraceSettings};
+use vscatter::sequence::Frame as SequenceFrame;
+use vscatter::sequence::{self, FramePattern, FrameRange, Shard};
+use vscatter::transfer::cache::{self, Source};
 use vscatter::transfer::memory::check_sun_budget;
-use vscatter::Result;
+use vscatter::volume::load_density;
+use vscatter::{Error, Result};
 
 pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
-    // Every flag and the output path are checked before any work, so a typo costs nothing.
+    // Every flag and every output path are checked before any work, so a typo costs nothing.
     let config = args.bake.validate()?;
     let (spp, spec) = args.validate()?;
     let light_options = args.light_options()?;
-    check_writable(&args.output)?;
+    let shot = Shot::plan(args)?;
+    for output in shot.outputs.iter().flatten() {
+        // A sequence's images go to a directory of their own, made as a batch makes its own.
+        if let (true, Some(dir)) = (shot.sequence, output.parent()) {
+            if !dir.as_os_str().is_empty() {
+                std::fs::create_dir_all(dir).map_err(|e| {
+                    Error::Runtime(format!("{}: cannot be made ({e})", dir.display()))
+                })?;
+            }
+        }
+        check_writable(output)?;
+    }
     if let Some(cache) = &args.cache {
         check_writable(cache)?;
     }
 
     // The light first: its checks (the number of suns, the map file) cost less than the volume.
+    // Each map is read and searched for a sun once, whatever the number of frames.
     let clock = Instant::now();
-    let lighting = Lighting::load(&args.env, &light_options)?;
-    let env_seconds = clock.elapsed().as_secs_f64();
-    let mut scene = Scene::open(&args.input, &config)?;
-    if let Some(Ok(found)) = &lighting.sun_search {
-        if !global.quiet {
-            eprintln!("{}: {found}", args.env);
+    let lightings = shot
+        .envs
+        .iter()
+        .map(|env| Lighting::load(env, &light_options))
+        .collect::<Result<Vec<Lighting>>>()?;
+    let env_seconds = clock.elapsed().as_secs_f64() / lightings.len() as f64;
+    for (env, lighting) in shot.envs.iter().zip(&lightings) {
+        if let (Some(Ok(found)), false) = (&lighting.sun_search, global.quiet) {
+            eprintln!("{env}: {found}");
         }
     }
-    let camera = scene.camera(&spec)?;
-    let mut stats = json!({
-        "command": "render",
-        "input": args.input.display().to_string(),
-        "read_seconds": scene.read_seconds,
-        "field_seconds": scene.field_seconds,
-        "env_seconds": env_seconds,
-        "sun_search": lighting.sun_search.as_ref().map(|r| match r {
-            Ok(found) => found,
-            Err(none) => none,
-        }),
-        "active_voxels": scene.field.grid.active_voxels(),
-        "brick_bytes": scene.field.accelerator_bytes(),
-    });
-    let view = View {
-        camera: &camera,
-        lighting: &lighting,
-        background: !args.no_background,
+    let job = Job {
+        args,
+        global,
+        config: &config,
+        spec,
         spp,
-        bar: progress::bar(0, "render", global.quiet),
+        lightings: &lightings,
+        env_seconds,
+        framing: shot.framing(&spec, &config)?,
+        shot: &shot,
     };
-    let frame = match args.method {
-        Method::Pathtrace => pathtrace(&scene, args, &view, &mut stats),
-        Method::Transfer => match transfer(&mut scene, args, &config, &view, global, &mut stats)? {
-            Some(frame) => frame,
-            // --dry-run: the estimate is printed, nothing is rendered.
-            None => return Ok(()),
-        },
-    };
-    view.bar.finish_and_clear();
-    let clock = Instant::now();
-    frame
-        .into_image()
-        .write(&args.output, &args.write_options())?;
-    stats["write_seconds"] = json!(clock.elapsed().as_secs_f64());
-    if global.stats {
-        stats["peak_memory_bytes"] = json!(peak_memory());
-        println!("{stats}");
+    if !shot.sequence {
+        // One image: its errors are the command's own.
+        return job.frame(0, None).map(|_| ());
     }
-    Ok(())
+    job.sequence()
+}
+
+/// What a render makes: the frames (this task's share), the environments, and an image for each
+/// pair; a sequence when the input or output names frames, or several maps are given.
+struct Shot {
+    /// This task's frames, each with its index in the whole sequence.
+    frames: Vec<(usize, SequenceFrame)>,
+    /// Frames in the whole sequence (every task's).
+    total: usize,
+    /// Every frame's input, for framing them all alike.
+    all_inputs: Vec<PathBuf>,
+    missing: Vec<PathBuf>,
+    envs: Vec<String>,
+    /// Per frame of `frames`, per environment.
+    outputs: Vec<Vec<PathBuf>>,
+    sequence: bool,
+    motion: Motion,
+}
+
+impl Shot {
+    fn plan(args: &RenderArgs) -> Result<Shot> {
+        let range = args.frames.as_deref().map(FrameRange::parse).transpose()?;
+        let shard = args.shard.as_deref().map(Shard::parse).transpose()?;
+        let resolved = sequence::resolve(std::slice::from_ref(&args.input), range)?;
+        let envs: Vec<String> = args.env.split(',').map(|e| e.trim().to_string()).collect();
+        let output = args.output.to_string_lossy().into_owned();
+        let pattern = FramePattern::parse(&output);
+        let sequence = resolved.frames.len() > 1
+            || range.is_some()
+            || shard.is_some()
+            || pattern.is_some()
+            || envs.len() > 1
+            || !resolved.missing.is_empty();
+        if sequence && args.cache.is_some() {
+            return Err(Error::usage(
+                "--cache keeps the bake of one render; `vscatter batch` bakes a sequence",
+            ));
+        }
+        if resolved.frames.len() > 1 && pattern.is_none() {
+            return Err(Error::usage(format!(
+                "{output}: {} frames need a frame pattern in the output name, e.g. img.####.exr",
+                resolved.frames.len()
+            )));
+        }
+        let stems: Vec<String> = envs.iter().map(|e| env_stem(e)).collect();
+        if let Some(dup) = (1..stems.len()).find(|&i| stems[..i].contains(&stems[i])) {
+            return Err(Error::usage(format!(
+                "--env: two maps named {:?} would write the same images",
+                stems[dup]
+            )));
+        }
+        let name = |index: usize, frame: &SequenceFrame, stem: Option<&str>| -> PathBuf {
+            let number = frame.number.unwrap_or(index as i64 + 1);
+            match (&pattern, stem) {
+                (Some(p), None) => p.path(number),
+                (Some(p), Some(s)) => FramePattern {
+                    prefix: format!("{}{s}.", p.prefix),
+                    ..p.clone()
+                }
+                .path(number),
+                (None, None) => args.output.clone(),
+                (None, Some(s)) => {
+                    let ext = args.output.extension().unwrap_or_default();
+                    args.output
+                        .with_extension(format!("{s}.{}", ext.to_string_lossy()))
+                }
+            }
+        };
+        let total = resolved.frames.len();
+        let all_inputs: Vec<PathBuf> = resolved.frames.iter().map(|f| f.path.clone()).collect();
+        let mut frames: Vec<(usize, SequenceFrame)> =
+            resolved.frames.into_iter().enumerate().collect();
+        let mut missing = resolved.missing;
+        if let Some(shard) = shard {
+            frames = shard.select(frames);
+            missing = shard.select(missing);
+        }
+        let outputs = frames
+            .iter()
+            .map(|(i, f)| match envs.len() {
+                1 => vec![name(*i, f, None)],
+                _ => stems.iter().map(|s| name(*i, f, Some(s))).collect(),
+            })
+            .collect();
+        let motion = match (args.orbit, &args.camera_path) {
+            (Some(deg), _) if !deg.is_finite() => {
+                return Err(Error::usage("--orbit must be a finite number of degrees"))
+            }
+            (Some(deg), _) => Motion::Orbit(deg),
+            (None, Some(path)) => Motion::read_path(path)?,
+            (None, None) => Motion::Still,
+        };
+        Ok(Shot {
+            frames,
+            total,
+            all_inputs,
+            missing,
+            envs,
+            outputs,
+            sequence,
+            motion,
+        })
+    }
+
+    /// The box every frame's camera frames, when frames must share one (a sequence, or an orbit,
+    /// without a camera position or path): the union of all frames' framing boxes (a cache's is
+    /// in its header), made square about the vertical axis for an orbit. `None`: each image frames
+    /// its own volume.
+    fn framing(&self, spec: &CameraSpec, config: &BakeConfig) -> Result<Option<(Vec3, Vec3)>> {
+        let orbit = matches!(self.motion, Motion::Orbit(_));
+        if spec.position.is_some() || matches!(self.motion, Motion::Path(_)) {
+            return Ok(None);
+        }
+        if !self.sequence && !orbit {
+            return Ok(None);
+        }
+        let mut union: Option<(Vec3, Vec3)> = None;
+        for input in &self.all_inputs {
+            let bounds = match cache::read_header(input) {
+                Ok(Some(h)) => h.framing.map(|[lo, hi]| (Vec3::from(lo), Vec3::from(hi))),
+                // A VDB (or a stale cache, refused when its frame renders): read its density.
+                _ => match load_density(input, config.grid.as_deref()) {
+                    Ok(loaded) => framing_bounds(&loaded.grid),
+                    Err(_) => None,
+                },
+            };
+            if let Some((lo, hi)) = bounds {
+                union = Some(union.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
+            }
+        }
+        Ok(union.map(|(lo, hi)| match orbit {
+            // Seen from any side, the box's horizontal extent is its widest.
+            true => {
+                let (c, h) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+                let r = h.x.max(h.z);
+                let half = Vec3::new(r, h.y, r);
+                (c - half, c + half)
+            }
+            false => (lo, hi),
+        }))
+    }
+}
+
+/// The name an environment gives its images: `studio.exr` → `studio`, `sky` → `sky`.
+fn env_stem(env: &str) -> String {
+    Path::new(env)
+        .file_stem()
+        .map_or_else(|| env.to_string(), |s| s.to_string_lossy().into_owned())
+}
+
+/// Everything a render needs beside the frame.
+struct Job<'a> {
+    args: &'a RenderArgs,
+    global: &'a GlobalArgs,
+    config: &'a BakeConfig,
+    spec: CameraSpec,
+    spp: u32,
+    lightings: &'a [Lighting],
+    env_seconds: f64,
+    /// The box all frames frame alike, when they do ([`Shot::framing`]).
+    framing: Option<(Vec3, Vec3)>,
+    shot: &'a Shot,
+}
+
+/// What became of a frame of a sequence.
+enum Made {
+    Rendered,
+    Current,
+    /// `--dry-run`: planned, nothing rendered.
+    Planned,
+}
+
+impl Job<'_> {
+    /// Renders every frame of this task's share: a frame whose images are all current is skipped,
+    /// a frame that fails is reported and the rest go on; exit 1 at the end naming what failed.
+    fn sequence(&self) -> Result<()> {
+        let shot = self.shot;
+        if !shot.missing.is_empty() {
+            eprintln!(
+                "vscatter: warning: {} frames missing: {}",
+                shot.missing.len(),
+                names(&shot.missing)
+            );
+        }
+        let inputs: Vec<PathBuf> = shot.frames.iter().map(|(_, f)| f.path.clone()).collect();
+        let progress = FrameProgress::new(&inputs, "render", self.global.quiet);
+        // A frame's own bars would fight the sequence's.
+        let global = GlobalArgs {
+            quiet: self.global.quiet || progress.has_bar(),
+            ..self.global.clone()
+        };
+        let job = Job {
+            global: &global,
+            ..*self
+        };
+        let clock = Instant::now();
+        let (mut rendered, mut current) = (0, 0);
+        let mut failed = Vec::new();
+        for (k, input) in inputs.iter().enumerate() {
+            match job.frame(k, Some(&progress)) {
+                Ok(Made::Rendered) => {
+                    rendered += 1;
+                    progress.done(k, &format!("rendered {}", names(&shot.outputs[k])), None);
+                }
+                Ok(Made::Current) => {
+                    current += 1;
+                    progress.done(k, "current", None);
+                }
+                Ok(Made::Planned) => progress.done(k, "planned", None),
+                Err(e) => {
+                    progress.done(k, "", Some(&e.to_string()));
+                    failed.push(input.clone());
+                }
+            }
+        }
+        progress.finish();
+        if !self.global.quiet {
+            eprintln!(
+                "render: {} frames × {} maps in {:.1} s: {rendered} rendered, {current} current, {} failed, {} missing",
+                shot.frames.len() + shot.missing.len(),
+                shot.envs.len(),
+                clock.elapsed().as_secs_f64(),
+                failed.len(),
+                shot.missing.len(),
+            );
+        }
+        let mut what = Vec::new();
+        if !failed.is_empty() {
+            what.push(format!("{} failed ({})", failed.len(), names(&failed)));
+        }
+        if !shot.missing.is_empty() {
+            what.push(format!(
+                "{} missing ({})",
+                shot.missing.len(),
+                names(&shot.missing)
+            ));
+        }
+        match what.is_empty() {
+            true => Ok(()),
+            false => Err(Error::Runtime(format!(
+                "sequence incomplete: of {} frames, {}",
+                shot.frames.len() + shot.missing.len(),
+                what.join(", ")
+            ))),
+        }
+    }
+
+    /// The camera of the `k`-th frame of this task's share, as moved over the sequence.
+    fn camera_spec(&self, k: usize, bounds: Option<(Vec3, Vec3)>) -> Result<CameraSpec> {
+        let (index, frame) = &self.shot.frames[k];
+        let (lo, hi) = bounds.unwrap_or((Vec3::splat(-0.5), Vec3::splat(0.5)));
+        let lookat = self.spec.lookat.unwrap_or(0.5 * (lo + hi));
+        let start = CameraSpec {
+            position: None,
+            ..self.spec
+        }
+        .camera(bounds)?
+        .position;
+        let number = frame.number.unwrap_or(*index as i64 + 1) as f64;
+        Ok(self
+            .shot
+            .motion
+            .spec_at(&self.spec, start, lookat, number, *index, self.shot.total))
+    }
+
+    /// A fingerprint of everything that makes the `k`-th frame's image under map `e`: the input
+    /// file's identity, the map's, the flags, and the camera.
+    fn fingerprint(&self, k: usize, e: usize, spec: &CameraSpec) -> u64 {
+        let input = &self.shot.frames[k].1.path;
+        let env = &self.shot.envs[e];
+        let file = |p: &Path| Source::of(p).map(|s| format!("{s:?}")).unwrap_or_default();
+        let flags = RenderArgs {
+            input: String::new(),
+            output: PathBuf::new(),
+            env: String::new(),
+            frames: None,
+            shard: None,
+            force: false,
+            ..self.args.clone()
+        };
+        let env_file = match env.as_str() {
+            vscatter::light::env::SKY_SPEC => String::new(),
+            path => file(Path::new(path)),
+        };
+        let text = format!(
+            "{}|{env}|{env_file}|{flags:?}|{spec:?}|{:?}",
+            file(input),
+            self.framing
+        );
+        xxhash_rust::xxh3::xxh3_64(text.as_bytes())
+    }
+
+    /// Renders the `k`-th frame of this task's share under every map, unless (in a sequence)
+    /// every one of its images is current.
+    fn frame(&self, k: usize, progress: Option<&FrameProgress>) -> Result<Made> {
+        let (args, global, shot) = (self.args, self.global, self.shot);
+        let phase = |p: &str| {
+            if let Some(progress) = progress {
+                progress.phase(k, p);
+            }
+        };
+        let input = &shot.frames[k].1.path;
+        let outputs = &shot.outputs[k];
+        // With a shared framing the camera is known before the volume is read.
+        let known = self
+            .framing
+            .map(|b| self.camera_spec(k, Some(b)))
+            .transpose()?;
+        if let (Some(spec), true, false) = (known, shot.sequence, args.force) {
+            let current = outputs
+                .iter()
+                .enumerate()
+                .all(|(e, o)| read_fingerprint(o) == Some(self.fingerprint(k, e, &spec)));
+            if current && !args.bake.dry_run {
+                return Ok(Made::Current);
+            }
+        }
+        phase("read");
+        let mut scene = Scene::open(input, self.config)?;
+        let bounds = self.framing.or_else(|| framing_bounds(&scene.field.grid));
+        let spec = match known {
+            Some(spec) => spec,
+            None => self.camera_spec(k, bounds)?,
+        };
+        let camera = spec.camera(bounds)?;
+        for (e, lighting) in self.lightings.iter().enumerate() {
+            let mut stats = json!({
+                "command": "render",
+                "input": input.display().to_string(),
+                "output": outputs[e].display().to_string(),
+                "frame": shot.frames[k].1.number,
+                "env": shot.envs[e],
+                "read_seconds": scene.read_seconds,
+                "field_seconds": scene.field_seconds,
+                "env_seconds": self.env_seconds,
+                "sun_search": lighting.sun_search.as_ref().map(|r| match r {
+                    Ok(found) => found,
+                    Err(none) => none,
+                }),
+                "active_voxels": scene.field.grid.active_voxels(),
+                "brick_bytes": scene.field.accelerator_bytes(),
+            });
+            let view = View {
+                camera: &camera,
+                lighting,
+                background: !args.no_background,
+                spp: self.spp,
+                bar: progress::bar(0, "render", global.quiet),
+            };
+            phase(&format!("render under {}", env_stem(&shot.envs[e])));
+            let frame = match args.method {
+                Method::Pathtrace => pathtrace(&scene, args, &view, &mut stats),
+                Method::Transfer => {
+                    match transfer(&mut scene, args, self.config, &view, global, &mut stats)? {
+                        Some(frame) => frame,
+                        // --dry-run: the estimate is printed, nothing is rendered.
+                        None => return Ok(Made::Planned),
+                    }
+                }
+            };
+            view.bar.finish_and_clear();
+            phase("write");
+            let clock = Instant::now();
+            // Only a sequence skips current images; a single render always renders.
+            let options = WriteOptions {
+                fingerprint: shot.sequence.then(|| self.fingerprint(k, e, &spec)),
+                ..args.write_options()
+            };
+            frame.into_image().write(&outputs[e], &options)?;
+            stats["write_seconds"] = json!(clock.elapsed().as_secs_f64());
+            if global.stats {
+                stats["peak_memory_bytes"] = json!(peak_memory());
+                println!("{stats}");
+            }
+        }
+        Ok(Made::Rendered)
+    }
 }
 
 /// What a render looks at, with what light, and how finely.

@@ -77,10 +77,21 @@ const FINGERPRINT_KEY: &str = "vscatterFingerprint";
 /// The fingerprint stored in the image at `path` by [`ImageBuf::write`]; `None` when the file is
 /// missing, unreadable or has none.
 pub fn read_fingerprint(path: &Path) -> Option<u64> {
-    let text = match path.extension()?.to_string_lossy().to_ascii_lowercase().as_str() {
+    let text = match path
+        .extension()?
+        .to_string_lossy()
+        .to_ascii_lowercase()
+        .as_str()
+    {
         "exr" => {
             let meta = exr::meta::MetaData::read_from_file(path, false).ok()?;
-            match meta.headers.first()?.own_attributes.other.get(&Text::from(FINGERPRINT_KEY))? {
+            match meta
+                .headers
+                .first()?
+                .own_attributes
+                .other
+                .get(&Text::from(FINGERPRINT_KEY))?
+            {
                 exr::meta::attribute::AttributeValue::Text(t) => t.to_string(),
                 _ => return None,
             }
@@ -281,12 +292,7 @@ impl ImageBuf {
     /// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve.
     /// Fully opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as
     /// PNG expects.
-    pub fn write_png(
-        &self,
-        path: &Path,
-        exposure_ev: f32,
-        fingerprint: Option<u64>,
-    ) -> Result<()> {
+    pub fn write_png(&self, path: &Path, exposure_ev: f32, fingerprint: Option<u64>) -> Result<()> {
         self.check()?;
         let scale = exposure_ev.exp2();
         let opaque = self.rgba.iter().all(|p| p[3] >= 1.0);
@@ -544,7 +550,11 @@ mod tests {
                 ..WriteOptions::default()
             };
             test_image().write(&path, &options).unwrap();
-            assert_eq!(read_fingerprint(&path), Some(0xfeed_beef_0123_4567), "{name}");
+            assert_eq!(
+                read_fingerprint(&path),
+                Some(0xfeed_beef_0123_4567),
+                "{name}"
+            );
             test_image().write(&path, &WriteOptions::default()).unwrap();
             assert_eq!(read_fingerprint(&path), None, "{name}");
         }

@@ -54,8 +54,7 @@ impl Motion {
                 .filter(|s| !s.is_empty())
                 .map(|s| s.parse::<f64>().map_err(|_| bad()))
                 .collect::<std::result::Result<_, _>>()?;
-            if v.len() != 8 || !v.iter().all(|x| x.is_finite()) || !(v[7] > 0.0 && v[7] < 180.0)
-            {
+            if v.len() != 8 || !v.iter().all(|x| x.is_finite()) || !(v[7] > 0.0 && v[7] < 180.0) {
                 return Err(bad());
             }
             let key = Key {
@@ -154,8 +153,14 @@ mod tests {
             assert_eq!(s.lookat, Some(centre));
         }
         // A quarter of the way round a 360° orbit: +Z has turned to +X.
-        let q = m.spec_at(&base(), start, centre, 0.0, 2, 8).position.unwrap();
-        assert!((q - (centre + Vec3::new(4.0, 0.5, 0.0))).length() < 1e-4, "{q}");
+        let q = m
+            .spec_at(&base(), start, centre, 0.0, 2, 8)
+            .position
+            .unwrap();
+        assert!(
+            (q - (centre + Vec3::new(4.0, 0.5, 0.0))).length() < 1e-4,
+            "{q}"
+        );
     }
 
     #[test]

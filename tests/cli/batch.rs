@@ -357,4 +357,177 @@ fn identical_frames_give_identical_caches() {
     for n in 2..=12 {
         assert!(body(n) == first, "frame {n} differs");
     }
+    // And so are their images (the files differ only in the fingerprint naming their source).
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            "out/s.####.vtc",
+            "-o",
+            "img/s.####.exr",
+            "--res",
+            "16x9",
+            "--quiet",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let first = pixels(&dir.path().join("img/s.0001.exr"));
+    for n in 2..=12 {
+        let image = pixels(&dir.path().join(format!("img/s.{n:04}.exr")));
+        assert!(image == first, "image {n} differs");
+    }
+}
+
+/// Every pixel's RGBA of an EXR.
+fn pixels(path: &Path) -> Vec<[f32; 4]> {
+    let img = exr::prelude::read_first_rgba_layer_from_file(
+        path,
+        |size, _| vec![[0f32; 4]; size.width() * size.height()],
+        |px: &mut Vec<[f32; 4]>, pos, (r, g, b, a): (f32, f32, f32, f32)| {
+            let w = px.len() / 9;
+            px[pos.y() * w + pos.x()] = [r, g, b, a];
+        },
+    )
+    .unwrap();
+    img.layer_data.channel_data.pixels
+}
+
+/// The summary line of a sequence render: (rendered, current).
+fn rendered_and_current(err: &str) -> (usize, usize) {
+    let line = err.lines().find(|l| l.starts_with("render: ")).unwrap();
+    let count = |what: &str| -> usize {
+        let before = line.split(&format!(" {what}")).next().unwrap();
+        before.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    (count("rendered"), count("current"))
+}
+
+#[test]
+fn sequences_render_once_orbit_follow_paths_and_relight_under_several_maps() {
+    let dir = tempfile::tempdir().unwrap();
+    sequence_in(dir.path());
+    let (code, _, err) = batch(dir.path(), &["seq/cloud.####.vdb", "--out-dir", "c"]);
+    assert_eq!(code, Some(0), "{err}");
+    let studio = fixture("env/studio.exr");
+    let maps = format!("sky,{}", studio.display());
+    // 16x9: `pixels` reads rows of 16.
+    let render = |extra: &[&str]| {
+        let mut args = vec!["render", "c/cloud.####.vtc", "--res", "16x9"];
+        args.extend(extra);
+        let o = vscatter_in(dir.path(), &args);
+        (o.status.code(), stderr(&o))
+    };
+    let orbit = [
+        "-o",
+        "img/o.####.exr",
+        "--orbit",
+        "360",
+        "--frames",
+        "1001-1012",
+    ];
+    let (code, err) = render(&orbit);
+    assert_eq!(code, Some(0), "{err}");
+    assert_eq!(rendered_and_current(&err), (12, 0));
+    // Nothing changed: every image is current. Another exposure is another picture.
+    let (_, err) = render(&orbit);
+    assert_eq!(rendered_and_current(&err), (0, 12));
+    let mut brighter = orbit.to_vec();
+    brighter.extend(["--env-scale", "2"]);
+    assert_eq!(rendered_and_current(&render(&brighter).1), (12, 0));
+    // The orbit turns: a quarter of the way round, the camera looks along -X.
+    let (a, b) = (
+        pixels(&dir.path().join("img/o.1001.exr")),
+        pixels(&dir.path().join("img/o.1004.exr")),
+    );
+    assert!(a != b);
+
+    // Under two maps at once: an image per map, each the one a single render under it makes.
+    let (code, err) = render(&["-o", "img/m.####.exr", "--env", &maps]);
+    assert_eq!(code, Some(0), "{err}");
+    for n in [1001, 1012] {
+        let single = dir.path().join(format!("s{n}.exr"));
+        let input = format!("c/cloud.{n}.vtc");
+        let o = vscatter_in(
+            dir.path(),
+            &[
+                "render",
+                &input,
+                "--res",
+                "16x9",
+                "--env",
+                studio.to_str().unwrap(),
+                "-o",
+                single.to_str().unwrap(),
+                "--camera-pos",
+                "24,16,90",
+            ],
+        );
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(dir.path().join(format!("img/m.sky.{n}.exr")).exists());
+        let studio_image = dir.path().join(format!("img/m.studio.{n}.exr"));
+        assert!(studio_image.exists());
+        // The sequence frames all frames alike, so compare with the same camera position.
+        let (_, err) = render(&[
+            "-o",
+            "img/p.####.exr",
+            "--env",
+            studio.to_str().unwrap(),
+            "--camera-pos",
+            "24,16,90",
+            "--frames",
+            &n.to_string(),
+        ]);
+        assert!(err.contains("1 rendered"), "{err}");
+        assert!(
+            pixels(&dir.path().join(format!("img/p.{n}.exr"))) == pixels(&single),
+            "frame {n}"
+        );
+    }
+
+    // A camera path: halfway between two keys is the camera halfway between them.
+    std::fs::write(
+        dir.path().join("path.txt"),
+        "# frame  position  lookat  fov\n1001  0 16 90  24 16 16  40\n1011  40 16 90  24 16 16  60\n",
+    )
+    .unwrap();
+    let (code, err) = render(&["-o", "img/k.####.exr", "--camera-path", "path.txt"]);
+    assert_eq!(code, Some(0), "{err}");
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "render",
+            "c/cloud.1006.vtc",
+            "--res",
+            "16x9",
+            "-o",
+            "mid.exr",
+            "--camera-pos",
+            "20,16,90",
+            "--lookat",
+            "24,16,16",
+            "--fov",
+            "50",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(pixels(&dir.path().join("img/k.1006.exr")) == pixels(&dir.path().join("mid.exr")));
+
+    // Bad sequence command lines: one line each, nothing rendered.
+    std::fs::write(dir.path().join("bad_path.txt"), "1001 0 0 1 0 0 0\n").unwrap();
+    let cases: [(&[&str], i32, &str); 4] = [
+        (&["-o", "one.exr"], 2, "frame pattern"),
+        (&["-o", "x.####.exr", "--cache", "k.vtc"], 2, "--cache"),
+        (
+            &["-o", "x.####.exr", "--camera-path", "bad_path.txt"],
+            1,
+            "bad_path.txt",
+        ),
+        (&["-o", "x.####.exr", "--env", "sky,sky"], 2, "\"sky\""),
+    ];
+    for (extra, code, names) in cases {
+        let mut args = vec!["render", "c/cloud.####.vtc"];
+        args.extend(extra);
+        assert_clean_failure(&vscatter_in(dir.path(), &args), code, names);
+    }
+    assert!(!dir.path().join("x.1001.exr").exists());
 }
