@@ -52,6 +52,8 @@ pub struct FrameReport {
     pub transfer_voxels: usize,
     /// The bake's estimated peak, what it held of the batch's memory budget.
     pub estimated_bytes: u64,
+    /// What a user should know before trusting the frame's pictures ([`Scene::warnings`]).
+    pub warnings: Vec<String>,
     /// The process's peak resident memory when the frame was done (frames in flight together
     /// share it).
     pub peak_memory: Option<u64>,
@@ -126,6 +128,7 @@ impl Batch<'_> {
             output_bytes: 0,
             transfer_voxels: 0,
             estimated_bytes: 0,
+            warnings: Vec::new(),
             peak_memory: None,
         };
         let outcome = (|| -> Result<Status> {
@@ -142,6 +145,7 @@ impl Batch<'_> {
                 )));
             }
             r.read_seconds = clock.elapsed().as_secs_f64();
+            r.warnings = scene.warnings(Some(self.config.settings.scale));
             let plan = scene.plan(&self.config.settings);
             plan.check_budget(&scene.field, &self.config.settings, Some(budget.limit))?;
             r.estimated_bytes = plan.estimate.total();

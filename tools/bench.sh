@@ -7,6 +7,10 @@
 #               relight time, 2048×1024 HDRI projection, sparse (helix) vs compact march time
 #   sun         issue 13: a moved sun vs no sun (1920×1080, cloud_large), one sun vs vdb_render with
 #               the same light, shadow-volume bytes per active voxel
+#   batch       issue 14: 24 frames of a 128³ cloud — `batch` vs the sum of single `bake` runs (and the
+#               same for the 12 small fixture frames); a 24-frame 1280×720 orbit from the caches and
+#               one cache under 4 maps (frames per second); the frame-to-frame difference of a still
+#               volume (must be 0) and of a slowly moving one
 #   sh          SH projection: sh_project (cargo bench) and a 2048×1024 EXR through `vscatter env`
 #   sh_project  only benches/sh_project.rs (4096×2048 map, 10 and 20 bands)
 #   versus      this binary against an earlier one (BENCH_OLD=path, or BENCH_OLD_REV=commit, default
@@ -286,7 +290,55 @@ section_versus() {
     cmp -s "$o/old_t.vtc" "$o/new_t.vtc" && echo "   the two caches are byte-identical" || echo "   the two caches differ"
 }
 
-SECTIONS=(bake render sun sh)
+section_batch() {
+    need_tools; build_vscatter; ensure_inputs
+    local S="$BENCH_IN/cloud_seq" o="$BENCH_OUT/batch" F="$PWD/fixtures/sequence" e="$PWD/fixtures/env"
+    mkdir -p "$o"
+    lscpu | awk -F': +' '/Model name/{print "cpu: " $2}'
+    echo "-- batch vs single bakes, same frames, same run (target: batch/sum <= 0.85)"
+    printf "%-26s %8s %8s %6s %7s  %-24s %s\n" frames sum_s batch_s cpu% ratio verdict load
+    local name dir n
+    for name in cloud_seq fixture_seq; do
+        case $name in cloud_seq) dir=$S ;; fixture_seq) dir=$F ;; esac
+        n=$(ls "$dir"/cloud.*.vdb | wc -l)
+        rm -rf "$o/single_$name" "$o/batch_$name"; mkdir -p "$o/single_$name"
+        local t0=$EPOCHREALTIME f
+        for f in "$dir"/cloud.*.vdb; do
+            "$VS" bake "$f" -o "$o/single_$name/$(basename "$f" .vdb).vtc" --quiet 2>/dev/null
+        done
+        local sum; sum=$(awk -v a="$t0" -v b="$EPOCHREALTIME" 'BEGIN{ printf "%.2f", b - a }')
+        run_timed "batch_$name" "$VS" batch "$dir/cloud.####.vdb" --out-dir "$o/batch_$name" --quiet --stats
+        local r; r=$(ratio "$WALL" "$sum")
+        printf "%-26s %8s %8s %6s %7s  %-24s %s\n" "$name ($n frames)" "$sum" "$WALL" "$CPU" "$r" \
+            "$(verdict "$r" "<=" 0.85)" "$LOAD"
+        for f in "$o/single_$name"/*.vtc; do
+            cmp -s "$f" "$o/batch_$name/$(basename "$f")" || echo "   $(basename "$f"): batch and single caches differ"
+        done
+    done
+
+    echo "-- sequence renders from the cloud_seq caches (frames per second)"
+    printf "%-40s %8s %6s %8s %9s  %s\n" run wall_s cpu% images fps load
+    run_timed render_orbit "$VS" render "$o/batch_cloud_seq/cloud.####.vtc" -o "$o/orbit/o.####.exr" \
+        --orbit 360 --res 1280x720 --force --quiet
+    printf "%-40s %8s %6s %8s %9s  %s\n" "24-frame orbit, 1280x720, sky" "$WALL" "$CPU" 24 \
+        "$(awk -v w="$WALL" 'BEGIN{ printf "%.2f", 24 / w }')" "$LOAD"
+    run_timed render_maps "$VS" render "$o/batch_cloud_seq/cloud.1001.vtc" -o "$o/maps/m.exr" \
+        --env "sky,$e/studio.exr,$e/split.exr,$e/sky_sun.exr" --res 1280x720 --force --quiet
+    printf "%-40s %8s %6s %8s %9s  %s\n" "one cache under 4 maps, 1280x720" "$WALL" "$CPU" 4 \
+        "$(awk -v w="$WALL" 'BEGIN{ printf "%.2f", 4 / w }')" "$LOAD"
+
+    echo "-- flicker: relative RMSE between consecutive frames (fixed camera, 1280x720, studio)"
+    mkdir -p "$o/still"
+    for n in 1 2; do cp "$S/cloud.1001.vdb" "$o/still/s.000$n.vdb"; done
+    "$VS" batch "$o/still/s.####.vdb" --out-dir "$o/still" --quiet
+    local view=(--res 1280x720 --env "$e/studio.exr" --camera-pos 64,64,400 --lookat 64,64,64 --no-background --force --quiet)
+    "$VS" render "$o/still/s.####.vtc" -o "$o/still/s.####.exr" "${view[@]}"
+    "$VS" render "$o/batch_cloud_seq/cloud.####.vtc" --frames 1012-1013 -o "$o/moving/m.####.exr" "${view[@]}"
+    printf "   still volume, two frames:           %s\n" "$("$VS" compare "$o/still/s.0001.exr" "$o/still/s.0002.exr" | head -1)"
+    printf "   moving 1 voxel a frame (of 128):    %s\n" "$("$VS" compare "$o/moving/m.1012.exr" "$o/moving/m.1013.exr" | head -1)"
+}
+
+SECTIONS=(bake render sun batch sh)
 
 run=("$@")
 { [ ${#run[@]} -eq 0 ] || [ "${run[0]}" = all ]; } && run=("${SECTIONS[@]}")

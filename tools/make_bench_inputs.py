@@ -8,6 +8,8 @@ Outputs (cached: an existing file is skipped unless --force):
   helix600.vdb     thin smoke helix (tube radius 6) in a ~600^3 mostly empty box, built sparsely
   block300.vdb     uniform 0.5 block over [0,299]^3 via fill -> 128^3 and 8^3 active tiles + leaves
   cloud_large.vdb  ~200 x 170 x 320 cumulus (same generator as fixtures/cloud.vdb)
+  cloud_seq/cloud.1001.vdb ... cloud.1024.vdb
+                   24 frames of a 128^3 cumulus drifting +1 voxel in x per frame (batch bench)
 All grids are float fog volumes named "density", voxel size 1; header UUIDs are fixed, so the
 outputs are deterministic.
 """
@@ -27,6 +29,30 @@ BENCH = {
 }
 
 
+SEQUENCE_FRAMES = range(1001, 1025)
+
+
+def make_sequence(out, force):
+    """The batch bench's sequence: one 128^3 cumulus written 24 times, shifted a voxel a frame."""
+    seq = os.path.join(out, "cloud_seq")
+    os.makedirs(seq, exist_ok=True)
+    paths = [os.path.join(seq, f"cloud.{n}.vdb") for n in SEQUENCE_FRAMES]
+    if all(os.path.exists(p) for p in paths) and not force:
+        print("cloud_seq: cached, skipped")
+        return
+    fbm = G.FBm((128, 128, 128), base_period=40, octaves=5, seed=77)
+    a = G.cumulus_box((128, 128, 128), (0, 0, 0), (128, 128, 128), fbm)
+    for i, path in enumerate(paths):
+        grid = G.fog_grid()
+        grid.copyFromArray(a, ijk=(i, 0, 0), tolerance=0.0)
+        grid.prune(0.0)
+        tmp = path + ".tmp"
+        vdb.write(tmp, grids=[grid])
+        G.patch_uuid(tmp)
+        os.replace(tmp, path)
+    print(f"cloud_seq: {len(paths)} frames of {grid.activeVoxelCount():,} active voxels")
+
+
 def main(argv):
     force = "--force" in argv
     argv = [a for a in argv if a != "--force"]
@@ -37,6 +63,8 @@ def main(argv):
         del argv[i:i + 2]
     out = argv[0] if argv else "target/bench-inputs"
     os.makedirs(out, exist_ok=True)
+    if not only or "cloud_seq" in only:
+        make_sequence(out, force)
     for name, make in BENCH.items():
         if only and name not in only and name[:-4] not in only:
             continue

@@ -2,6 +2,7 @@
 //! transfer (single scattering, then the lattice) and write a `.vtc` cache — with a progress bar
 //! per phase and `--stats`.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use serde_json::json;
@@ -78,11 +79,27 @@ pub fn prepare_bake(
     )))
 }
 
-/// Prints each warning as one line. `--quiet` hides progress, never a warning.
+/// Prints each warning as one line. `--quiet` hides progress, never a warning. Over many frames
+/// ([`warn_once_per_run`]) only the first frame's warnings are printed: the next frames' say the
+/// same with other digits.
 pub fn warn(warnings: &[String]) {
+    if warnings.is_empty() || (ONCE.load(Ordering::Relaxed) && WARNED.swap(true, Ordering::Relaxed))
+    {
+        return;
+    }
     for w in warnings {
         eprintln!("vscatter: warning: {w}");
     }
+}
+
+/// Whether warnings are printed for the first frame only.
+static ONCE: AtomicBool = AtomicBool::new(false);
+/// Whether a frame's warnings have been printed.
+static WARNED: AtomicBool = AtomicBool::new(false);
+
+/// From now on, [`warn`] prints only the first frame's warnings (a batch, a sequence render).
+pub fn warn_once_per_run() {
+    ONCE.store(true, Ordering::Relaxed);
 }
 
 /// The `--stats` JSON of a bake.

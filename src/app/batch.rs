@@ -10,6 +10,7 @@ use indicatif::HumanBytes;
 use serde_json::json;
 
 use super::args::{BatchArgs, GlobalArgs};
+use super::bake::{warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
 use vscatter::batch::{Batch, FrameReport, Report, Status};
 use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
@@ -74,6 +75,7 @@ pub fn run(args: &BatchArgs, global: &GlobalArgs, threads: usize) -> Result<()> 
         workers: threads,
     };
     let clock = Instant::now();
+    warn_once_per_run();
     let inputs: Vec<PathBuf> = jobs.iter().map(|(i, _)| i.clone()).collect();
     let progress = FrameProgress::new(&inputs, "batch", global.quiet);
     let reports = batch.run(&progress);
@@ -175,6 +177,7 @@ impl Report for FrameProgress {
     }
 
     fn done(&self, frame: usize, r: &FrameReport) {
+        warn(&r.warnings);
         let what = match &r.status {
             Status::Baked => format!(
                 "baked -> {} ({}, {:.1} s)",

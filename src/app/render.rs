@@ -12,7 +12,7 @@ use indicatif::{HumanBytes, ProgressBar};
 use serde_json::{json, Value};
 
 use super::args::{GlobalArgs, Method, RenderArgs};
-use super::bake::{bake_stats_json, prepare_bake, warn};
+use super::bake::{bake_stats_json, prepare_bake, warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
 use vscatter::io::atomic::check_writable;
 use vscatter::io::image::{read_fingerprint, WriteOptions};
@@ -264,6 +264,7 @@ impl Job<'_> {
                 names(&shot.missing)
             );
         }
+        warn_once_per_run();
         let inputs: Vec<PathBuf> = shot.frames.iter().map(|(_, f)| f.path.clone()).collect();
         let progress = FrameProgress::new(&inputs, "render", self.global.quiet);
         // A frame's own bars would fight the sequence's.
