@@ -177,7 +177,7 @@ impl Report for FrameProgress {
     }
 
     fn done(&self, frame: usize, r: &FrameReport) {
-        warn(&r.warnings);
+        self.suspend(|| warn(&r.warnings));
         let what = match &r.status {
             Status::Baked => format!(
                 "baked -> {} ({}, {:.1} s)",

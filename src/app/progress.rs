@@ -29,7 +29,7 @@ impl FrameProgress {
         let terminal = std::io::stderr().is_terminal();
         let bar = (!quiet && terminal).then(|| {
             let style = ProgressStyle::with_template(
-                "{prefix:>7} [{elapsed_precise}] {bar:30} {pos}/{len} frames ({eta} left) {wide_msg}",
+                "{prefix:>6} {pos}/{len} [{elapsed_precise}] {bar:20} eta {eta} {wide_msg}",
             )
             .unwrap_or_else(|_| ProgressStyle::default_bar());
             ProgressBar::new(inputs.len() as u64)
@@ -81,6 +81,14 @@ impl FrameProgress {
                 .map(|(i, p)| format!("{}: {p}", self.names[*i]))
                 .collect();
             bar.set_message(msg.join(", "));
+        }
+    }
+
+    /// Runs `f` (which prints) with the bar cleared, so its lines do not land inside the bar's.
+    pub fn suspend<R>(&self, f: impl FnOnce() -> R) -> R {
+        match &self.bar {
+            Some(bar) => bar.suspend(f),
+            None => f(),
         }
     }
 

@@ -14,7 +14,7 @@ use serde_json::{json, Value};
 use super::args::{GlobalArgs, Method, RenderArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
-use vscatter::io::atomic::check_writable;
+use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
 use vscatter::io::image::{read_fingerprint, WriteOptions};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress;
@@ -45,6 +45,29 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
             }
         }
         check_writable(output)?;
+    }
+    if shot.sequence {
+        let dirs: std::collections::BTreeSet<&Path> = shot
+            .outputs
+            .iter()
+            .flatten()
+            .filter_map(|o| o.parent())
+            .collect();
+        for dir in dirs {
+            let dir = if dir.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                dir
+            };
+            for gone in remove_stale_temporaries(dir)? {
+                if !global.quiet {
+                    eprintln!(
+                        "removed {} (left by a process that is gone)",
+                        gone.display()
+                    );
+                }
+            }
+        }
     }
     if let Some(cache) = &args.cache {
         check_writable(cache)?;
@@ -299,7 +322,7 @@ impl Job<'_> {
         progress.finish();
         if !self.global.quiet {
             eprintln!(
-                "render: {} frames × {} maps in {:.1} s: {rendered} rendered, {current} current, {} failed, {} missing",
+                "render: {} frames × {} map(s) in {:.1} s: {rendered} rendered, {current} current, {} failed, {} missing",
                 shot.frames.len() + shot.missing.len(),
                 shot.envs.len(),
                 clock.elapsed().as_secs_f64(),
