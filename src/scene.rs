@@ -6,6 +6,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use glam::Vec3;
 use indicatif::ProgressBar;
 
 use crate::error::Result;
@@ -287,6 +288,25 @@ impl Scene {
             tracer.trace(sample, stats)
         })
     }
+}
+
+/// The box a camera framing every one of `inputs` looks at: the union of their framing boxes
+/// ([`render::framing_bounds`]). A cache's box is in its header, so only a VDB (of `grid`) is read.
+/// An input that cannot be read adds nothing (its frame reports the error when it renders).
+pub fn framing_union(inputs: &[std::path::PathBuf], grid: Option<&str>) -> Option<(Vec3, Vec3)> {
+    let mut union: Option<(Vec3, Vec3)> = None;
+    for input in inputs {
+        let bounds = match cache::read_header(input) {
+            Ok(Some(h)) => h.framing.map(|[lo, hi]| (Vec3::from(lo), Vec3::from(hi))),
+            _ => load_density(input, grid)
+                .ok()
+                .and_then(|loaded| render::framing_bounds(&loaded.grid)),
+        };
+        if let Some((lo, hi)) = bounds {
+            union = Some(union.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
+        }
+    }
+    union
 }
 
 /// Whether the cache at `cache` holds a bake of the file at `input`, as it is now, with `config`:

@@ -336,5 +336,54 @@ pub fn outputs_in(dir: &Path, frames: &[Frame], ext: &str) -> Result<Vec<PathBuf
     Ok(out)
 }
 
+/// The name a map gives its images: `studio.exr` → `studio`, `sky` → `sky`.
+pub fn map_name(env: &str) -> String {
+    Path::new(env)
+        .file_stem()
+        .map_or_else(|| env.to_string(), |s| s.to_string_lossy().into_owned())
+}
+
+/// The image of each frame (with its index in the whole sequence) under each map: `output`'s frame
+/// pattern filled with the frame's number (its position from 1 when it has none). Under several
+/// maps, the map's name goes before the number (`img.####.exr` → `img.studio.####.exr`; without a
+/// pattern, before the extension). Two maps of one name are refused.
+pub fn image_names(
+    output: &Path,
+    frames: &[(usize, Frame)],
+    maps: &[String],
+) -> Result<Vec<Vec<PathBuf>>> {
+    let names: Vec<String> = maps.iter().map(|m| map_name(m)).collect();
+    if let Some(dup) = (1..names.len()).find(|&i| names[..i].contains(&names[i])) {
+        return Err(Error::usage(format!(
+            "--env: two maps named {:?} would write the same images",
+            names[dup]
+        )));
+    }
+    let pattern = FramePattern::parse(&output.to_string_lossy());
+    let name = |index: usize, frame: &Frame, map: Option<&str>| -> PathBuf {
+        let number = frame.number.unwrap_or(index as i64 + 1);
+        match (&pattern, map) {
+            (Some(p), None) => p.path(number),
+            (Some(p), Some(m)) => FramePattern {
+                prefix: format!("{}{m}.", p.prefix),
+                ..p.clone()
+            }
+            .path(number),
+            (None, None) => output.to_path_buf(),
+            (None, Some(m)) => {
+                let ext = output.extension().unwrap_or_default().to_string_lossy();
+                output.with_extension(format!("{m}.{ext}"))
+            }
+        }
+    };
+    Ok(frames
+        .iter()
+        .map(|(i, f)| match names.len() {
+            1 => vec![name(*i, f, None)],
+            _ => names.iter().map(|m| name(*i, f, Some(m))).collect(),
+        })
+        .collect())
+}
+
 #[cfg(test)]
 mod tests;

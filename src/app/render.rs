@@ -21,12 +21,11 @@ use vscatter::io::progress;
 use vscatter::light::Lighting;
 use vscatter::render::motion::Motion;
 use vscatter::render::{framing_bounds, Camera, CameraSpec, Frame, MarchSettings};
-use vscatter::scene::{BakeConfig, Scene, TraceSettings};
+use vscatter::scene::{self, BakeConfig, Scene, TraceSettings};
 use vscatter::sequence::Frame as SequenceFrame;
 use vscatter::sequence::{self, FramePattern, FrameRange, Shard};
-use vscatter::transfer::cache::{self, Source};
+use vscatter::transfer::cache::Source;
 use vscatter::transfer::memory::check_sun_budget;
-use vscatter::volume::load_density;
 use vscatter::{Error, Result};
 
 pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
@@ -95,7 +94,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         spp,
         lightings: &lightings,
         env_seconds,
-        framing: shot.framing(&spec, &config)?,
+        framing: shot.framing(&spec, &config),
         shot: &shot,
     };
     if !shot.sequence {
@@ -147,30 +146,6 @@ impl Shot {
                 resolved.frames.len()
             )));
         }
-        let stems: Vec<String> = envs.iter().map(|e| env_stem(e)).collect();
-        if let Some(dup) = (1..stems.len()).find(|&i| stems[..i].contains(&stems[i])) {
-            return Err(Error::usage(format!(
-                "--env: two maps named {:?} would write the same images",
-                stems[dup]
-            )));
-        }
-        let name = |index: usize, frame: &SequenceFrame, stem: Option<&str>| -> PathBuf {
-            let number = frame.number.unwrap_or(index as i64 + 1);
-            match (&pattern, stem) {
-                (Some(p), None) => p.path(number),
-                (Some(p), Some(s)) => FramePattern {
-                    prefix: format!("{}{s}.", p.prefix),
-                    ..p.clone()
-                }
-                .path(number),
-                (None, None) => args.output.clone(),
-                (None, Some(s)) => {
-                    let ext = args.output.extension().unwrap_or_default();
-                    args.output
-                        .with_extension(format!("{s}.{}", ext.to_string_lossy()))
-                }
-            }
-        };
         let total = resolved.frames.len();
         let all_inputs: Vec<PathBuf> = resolved.frames.iter().map(|f| f.path.clone()).collect();
         let mut frames: Vec<(usize, SequenceFrame)> =
@@ -180,13 +155,7 @@ impl Shot {
             frames = shard.select(frames);
             missing = shard.select(missing);
         }
-        let outputs = frames
-            .iter()
-            .map(|(i, f)| match envs.len() {
-                1 => vec![name(*i, f, None)],
-                _ => stems.iter().map(|s| name(*i, f, Some(s))).collect(),
-            })
-            .collect();
+        let outputs = sequence::image_names(&args.output, &frames, &envs)?;
         let motion = match (args.orbit, &args.camera_path) {
             (Some(deg), _) if !deg.is_finite() => {
                 return Err(Error::usage("--orbit must be a finite number of degrees"))
@@ -208,49 +177,18 @@ impl Shot {
     }
 
     /// The box every frame's camera frames, when frames must share one (a sequence, or an orbit,
-    /// without a camera position or path): the union of all frames' framing boxes (a cache's is
-    /// in its header), made square about the vertical axis for an orbit. `None`: each image frames
-    /// its own volume.
-    fn framing(&self, spec: &CameraSpec, config: &BakeConfig) -> Result<Option<(Vec3, Vec3)>> {
+    /// without a camera position or path); `None`: each image frames its own volume.
+    fn framing(&self, spec: &CameraSpec, config: &BakeConfig) -> Option<(Vec3, Vec3)> {
         let orbit = matches!(self.motion, Motion::Orbit(_));
         if spec.position.is_some() || matches!(self.motion, Motion::Path(_)) {
-            return Ok(None);
+            return None;
         }
         if !self.sequence && !orbit {
-            return Ok(None);
+            return None;
         }
-        let mut union: Option<(Vec3, Vec3)> = None;
-        for input in &self.all_inputs {
-            let bounds = match cache::read_header(input) {
-                Ok(Some(h)) => h.framing.map(|[lo, hi]| (Vec3::from(lo), Vec3::from(hi))),
-                // A VDB (or a stale cache, refused when its frame renders): read its density.
-                _ => match load_density(input, config.grid.as_deref()) {
-                    Ok(loaded) => framing_bounds(&loaded.grid),
-                    Err(_) => None,
-                },
-            };
-            if let Some((lo, hi)) = bounds {
-                union = Some(union.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
-            }
-        }
-        Ok(union.map(|(lo, hi)| match orbit {
-            // Seen from any side, the box's horizontal extent is its widest.
-            true => {
-                let (c, h) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-                let r = h.x.max(h.z);
-                let half = Vec3::new(r, h.y, r);
-                (c - half, c + half)
-            }
-            false => (lo, hi),
-        }))
+        let union = scene::framing_union(&self.all_inputs, config.grid.as_deref());
+        union.map(|b| self.motion.widen(b))
     }
-}
-
-/// The name an environment gives its images: `studio.exr` → `studio`, `sky` → `sky`.
-fn env_stem(env: &str) -> String {
-    Path::new(env)
-        .file_stem()
-        .map_or_else(|| env.to_string(), |s| s.to_string_lossy().into_owned())
 }
 
 /// Everything a render needs beside the frame.
@@ -453,7 +391,10 @@ impl Job<'_> {
                 spp: self.spp,
                 bar: progress::bar(0, "render", global.quiet),
             };
-            phase(&format!("render under {}", env_stem(&shot.envs[e])));
+            phase(&format!(
+                "render under {}",
+                sequence::map_name(&shot.envs[e])
+            ));
             let frame = match args.method {
                 Method::Pathtrace => pathtrace(&scene, args, &view, &mut stats),
                 Method::Transfer => {

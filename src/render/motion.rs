@@ -74,6 +74,21 @@ impl Motion {
         Ok(Motion::Path(keys))
     }
 
+    /// The box a camera moving this way must frame for the volume in `bounds` to stay in the
+    /// picture: for an orbit, widened to a square about the vertical axis (seen from any side, the
+    /// box's horizontal extent is its widest).
+    pub fn widen(&self, (lo, hi): (Vec3, Vec3)) -> (Vec3, Vec3) {
+        match self {
+            Motion::Orbit(_) => {
+                let (c, h) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+                let r = h.x.max(h.z);
+                let half = Vec3::new(r, h.y, r);
+                (c - half, c + half)
+            }
+            _ => (lo, hi),
+        }
+    }
+
     /// The camera of frame `frame`, the `index`-th of `count`, moved from `base`: an orbit turns
     /// `base`'s position (or, without one, the framing camera's at `framing` distance) about the
     /// look-at point; a path sets position, look-at and field of view from its keys, held before

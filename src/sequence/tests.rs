@@ -103,3 +103,39 @@ fn outputs_mirror_inputs_and_collisions_are_refused() {
     let err = outputs_in(Path::new("o"), &frames(&["a/c.1.vdb", "b/c.1.vdb"]), "vtc").unwrap_err();
     assert!(err.to_string().contains("would both write"), "{err}");
 }
+
+#[test]
+fn images_are_named_by_frame_and_map() {
+    let frames = vec![
+        (
+            0,
+            Frame {
+                number: Some(1001),
+                path: PathBuf::from("c.1001.vtc"),
+            },
+        ),
+        (
+            1,
+            Frame {
+                number: None,
+                path: PathBuf::from("c.vtc"),
+            },
+        ),
+    ];
+    let one = image_names(Path::new("o/img.####.exr"), &frames, &["sky".into()]).unwrap();
+    assert_eq!(one[0], vec![PathBuf::from("o/img.1001.exr")]);
+    assert_eq!(one[1], vec![PathBuf::from("o/img.0002.exr")]);
+    let maps = ["sky".to_string(), "env/studio.exr".to_string()];
+    let two = image_names(Path::new("o/img.%04d.png"), &frames, &maps).unwrap();
+    assert_eq!(
+        two[0],
+        vec![
+            PathBuf::from("o/img.sky.1001.png"),
+            PathBuf::from("o/img.studio.1001.png")
+        ]
+    );
+    let single = image_names(Path::new("a.exr"), &frames[..1], &maps).unwrap();
+    assert_eq!(single[0][1], PathBuf::from("a.studio.exr"));
+    let same = ["a/studio.exr".to_string(), "b/studio.hdr".to_string()];
+    assert!(image_names(Path::new("x.####.exr"), &frames, &same).is_err());
+}
