@@ -78,12 +78,60 @@ fn every_pattern_names_the_same_frames_and_current_caches_are_skipped() {
         assert_eq!(with_status(&stats, "current"), all_frames(), "{spelling:?}");
         assert!(with_status(&stats, "baked").is_empty(), "{spelling:?}");
     }
+    // A dry run says so, frame by frame, and bakes nothing.
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "batch",
+            "seq/cloud.####.vdb",
+            "--out-dir",
+            "out",
+            "--dry-run",
+            "--bands",
+            "3",
+            "--scale",
+            "4",
+            "--samples",
+            "64",
+        ],
+    );
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        said.lines().filter(|l| l.contains(": current (")).count(),
+        12,
+        "{said}"
+    );
     // Touching one source reconverts that frame alone.
     let touched = dir.path().join("seq/cloud.1005.vdb");
     let f = std::fs::File::options().write(true).open(&touched).unwrap();
     f.set_modified(std::time::SystemTime::now() + Duration::from_secs(5))
         .unwrap();
     drop(f);
+    let o = vscatter_in(
+        dir.path(),
+        &[
+            "batch",
+            "seq/cloud.####.vdb",
+            "--out-dir",
+            "out",
+            "--dry-run",
+            "--bands",
+            "3",
+            "--scale",
+            "4",
+            "--samples",
+            "64",
+        ],
+    );
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(
+        said.lines()
+            .filter(|l| l.contains("transfer voxels"))
+            .count(),
+        1,
+        "{said}"
+    );
     let (code, stats, _) = batch(dir.path(), &["seq/cloud.####.vdb", "--out-dir", "out"]);
     assert_eq!(code, Some(0));
     assert_eq!(
