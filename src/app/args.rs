@@ -12,6 +12,7 @@ use vscatter::light::sun::Sun;
 use vscatter::light::LightOptions;
 use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
+use vscatter::transfer::memory::MAX_SCALE;
 use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
 
 /// Multiple-scattering relighting of OpenVDB fog volumes.
@@ -68,8 +69,6 @@ pub const DEFAULT_SAMPLES: usize = 512;
 const MIN_SAMPLES: usize = 16;
 /// More directions than this only cost time: the projection error is far below the SH truncation.
 const MAX_SAMPLES: usize = 65536;
-/// K beyond this leaves a handful of transfer voxels across any real volume.
-const MAX_SCALE: i32 = 64;
 
 /// `vscatter bake IN.vdb -o OUT.vtc`.
 #[derive(Debug, Args)]

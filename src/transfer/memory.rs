@@ -12,6 +12,10 @@ use crate::volume::DensityField;
 /// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
 const PROCESS_BASELINE: u64 = 24 << 20;
 
+/// The coarsest transfer resolution divisor K: beyond it a handful of transfer voxels span any
+/// real volume (`--scale` refuses more; a refusal suggests no more).
+pub const MAX_SCALE: i32 = 64;
+
 /// Share of available memory a bake may plan to use by default: the rest stays for the system
 /// and other processes.
 pub const DEFAULT_MEMORY_SHARE: f64 = 0.8;
@@ -76,21 +80,43 @@ impl MemoryEstimate {
     }
 }
 
+/// Above this many transfer voxels (by [`TransferLayout::estimate_len`]) a plan estimates the
+/// bake instead of laying it out: listing them would take gigabytes and minutes, and a bake of so
+/// many needs tens of gigabytes (16 M voxels × 100 coefficients × 4 bytes × at least four copies).
+const MAX_LAID_OUT_VOXELS: u64 = 16_000_000;
+/// Bytes of layout per transfer voxel (its coordinate, its slot in a 4³ tile, the tile map's
+/// share), for a plan that estimates.
+const LAYOUT_BYTES_PER_VOXEL: u64 = 20;
+
 /// What a bake of a density with given settings will make, before it runs.
 #[derive(Debug, Clone, Copy)]
 pub struct BakePlan {
     pub transfer_voxels: usize,
     pub transfer_tiles: usize,
     pub estimate: MemoryEstimate,
+    /// The counts are estimated ([`MAX_LAID_OUT_VOXELS`]), not counted.
+    pub estimated: bool,
 }
 
 impl BakePlan {
     pub fn new(field: &DensityField, settings: &BakeSettings) -> BakePlan {
+        let about = TransferLayout::estimate_len(&field.grid, settings.scale);
+        if about > MAX_LAID_OUT_VOXELS {
+            let n = usize::try_from(about).unwrap_or(usize::MAX);
+            let layout = about.saturating_mul(LAYOUT_BYTES_PER_VOXEL);
+            return BakePlan {
+                transfer_voxels: n,
+                transfer_tiles: n / 64,
+                estimate: estimate(field, layout as usize, n, settings),
+                estimated: true,
+            };
+        }
         let layout = TransferLayout::build(&field.grid, settings.scale);
         BakePlan {
             transfer_voxels: layout.len(),
             transfer_tiles: layout.tile_count(),
             estimate: estimate(field, layout.memory_bytes(), layout.len(), settings),
+            estimated: false,
         }
     }
 
@@ -98,7 +124,8 @@ impl BakePlan {
     pub fn describe(&self) -> String {
         let e = &self.estimate;
         format!(
-            "{} transfer voxels in {} tiles; estimated peak memory {} (density {}, transfer {}, working {})",
+            "{}{} transfer voxels in {} tiles; estimated peak memory {} (density {}, transfer {}, working {})",
+            if self.estimated { "about " } else { "" },
             self.transfer_voxels,
             self.transfer_tiles,
             human(e.total()),
@@ -123,10 +150,6 @@ impl BakePlan {
         let layout_bytes = self.estimate.layout as usize;
         let n = self.transfer_voxels;
         let s = *settings;
-        // A coarser K shrinks the voxel count roughly with K³.
-        let k2 = s.scale + 2;
-        let shrink = (s.scale as f64 / k2 as f64).powi(3);
-        let coarser = BakeSettings { scale: k2, ..s };
         let fewer = BakeSettings {
             bands: s.bands.saturating_sub(2).max(1),
             ..s
@@ -136,17 +159,27 @@ impl BakePlan {
             ..s
         };
         let need = |settings: &BakeSettings, voxels: usize| {
-            human(estimate(field, layout_bytes, voxels, settings).total())
+            estimate(field, layout_bytes, voxels, settings).total()
+        };
+        // The finest coarser K that fits, from the estimated count at each K.
+        let coarser = (s.scale + 1..=MAX_SCALE).find_map(|k| {
+            let about = TransferLayout::estimate_len(&field.grid, k);
+            let voxels = usize::try_from(about).unwrap_or(usize::MAX);
+            let bytes = (about.saturating_mul(LAYOUT_BYTES_PER_VOXEL)) as usize;
+            let total = estimate(field, bytes, voxels, &BakeSettings { scale: k, ..s }).total();
+            (total <= limit).then_some((k, total))
+        });
+        let coarser = match coarser {
+            Some((k, total)) => format!("--scale {k} would need about {}", human(total)),
+            None => format!("no --scale up to {MAX_SCALE} would fit"),
         };
         Err(Error::Runtime(format!(
-            "this bake needs about {} but may use {} (--max-memory); --scale {} would need about {}, --bands {} about {}, --lattice 6 about {}",
+            "this bake needs about {} but may use {} (--max-memory); {coarser}, --bands {} about {}, --lattice 6 about {}",
             human(self.estimate.total()),
             human(limit),
-            k2,
-            need(&coarser, (n as f64 * shrink) as usize),
             fewer.bands,
-            need(&fewer, n),
-            need(&faces, n),
+            human(need(&fewer, n)),
+            human(need(&faces, n)),
         )))
     }
 }

@@ -346,17 +346,31 @@ fn mark_occupied(
         mark_box(&mut blocks, lo - d, hi + d, max);
     }
     let mut dense: HashMap<IVec3, f32> = HashMap::new();
-    for (origin, value) in grid.tiles(TileLevel::Node) {
-        if value > 0.0 {
-            let node = origin >> NODE_LOG2;
-            raise(&mut dense, node, value);
-            let lo = node << BLOCKS_PER_NODE_LOG2;
-            let hi = lo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
-            let (vlo, vhi) = (
-                origin - DILATION,
-                origin + ((1 << NODE_LOG2) - 1) + DILATION,
-            );
-            shell(lo, hi).for_each(|b| mark(&mut blocks, b, vlo, vhi, value));
+    let node_tiles = || {
+        grid.tiles(TileLevel::Node)
+            .filter(|&(_, v)| v > 0.0)
+            .map(|(o, v)| (o, o >> NODE_LOG2, v))
+    };
+    for (_, node, value) in node_tiles() {
+        raise(&mut dense, node, value);
+    }
+    // A node tile's dilation reaches one block into each neighbour. A neighbour that is a node tile
+    // too is raised as a whole, not marked block by block: a box of node tiles (billions of voxels)
+    // marks only its outer shell.
+    let tiled: hashbrown::HashSet<IVec3> = node_tiles().map(|(_, n, _)| n).collect();
+    for (origin, node, value) in node_tiles() {
+        let lo = node << BLOCKS_PER_NODE_LOG2;
+        let hi = lo + IVec3::splat((1 << BLOCKS_PER_NODE_LOG2) - 1);
+        let (vlo, vhi) = (
+            origin - DILATION,
+            origin + ((1 << NODE_LOG2) - 1) + DILATION,
+        );
+        for b in shell(lo, hi) {
+            let n = b >> BLOCKS_PER_NODE_LOG2;
+            match tiled.contains(&n) {
+                true => raise(&mut dense, n, value),
+                false => mark(&mut blocks, b, vlo, vhi, value),
+            }
         }
     }
     let mut roots = HashMap::new();

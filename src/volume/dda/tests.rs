@@ -126,6 +126,27 @@ fn node_tile_is_one_dense_span_with_its_shell() {
 }
 
 #[test]
+fn neighbouring_node_tiles_raise_each_other_and_mark_only_their_outer_shell() {
+    let mut g = grid();
+    g.insert_tile(TileLevel::Node, IVec3::ZERO, 0.25);
+    g.insert_tile(TileLevel::Node, IVec3::new(128, 0, 0), 0.75);
+    let occ = Occupancy::build(&g);
+    // The 0.75 tile's dilation reaches into the 0.25 node, whose majorant rises to 0.75; the span
+    // runs on through both, with the shell beyond each far face.
+    let s = occ.spans(dv(-50.0, 64.0, 64.0), DVec3::X, 0.0, 1000.0);
+    check(&s, &[(48.0, 307.0, 0.75)]);
+    // A box of 4³ node tiles marks blocks only outside the box (16³ blocks a node): the shell of
+    // one block around a 64³-block box, none inside.
+    let mut g = grid();
+    for n in 0..64 {
+        let o = IVec3::new(n % 4, (n / 4) % 4, n / 16) * 128;
+        g.insert_tile(TileLevel::Node, o, 0.5);
+    }
+    let (blocks, _, _) = mark_occupied(&g);
+    assert_eq!(blocks.len(), 66usize.pow(3) - 64usize.pow(3));
+}
+
+#[test]
 fn root_tile_is_dense_with_a_ring_of_nodes() {
     let mut g = grid();
     g.insert_tile(TileLevel::Root, IVec3::ZERO, 0.125);
