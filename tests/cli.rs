@@ -9,6 +9,8 @@ mod batch;
 mod env;
 #[path = "cli/farm.rs"]
 mod farm;
+#[path = "cli/mutation.rs"]
+mod mutation;
 #[path = "cli/pathtrace.rs"]
 mod pathtrace;
 #[path = "cli/render.rs"]
