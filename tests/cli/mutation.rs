@@ -115,7 +115,7 @@ fn unclean(path: &Path, args: &[&str]) -> Option<String> {
 fn no_damaged_file_crashes_the_reader() {
     let dir = tempfile::tempdir().unwrap();
     let jobs: Vec<(PathBuf, Vec<u8>)> = {
-        let mut rng = Pcg64::seed_from_u64(0x5eed_0f_7d6);
+        let mut rng = Pcg64::seed_from_u64(0x5eed_f7d6);
         FILES
             .iter()
             .flat_map(|name| {
