@@ -11,6 +11,8 @@
 #               same for the 12 small fixture frames); a 24-frame 1280×720 orbit from the caches and
 #               one cache under 4 maps (frames per second); the frame-to-frame difference of a still
 #               volume (must be 0) and of a slowly moving one
+#   tiles       issue 15: billions of voxels in tiles (fixtures/huge_*.vdb) — info, bake --dry-run, a
+#               bake's refusal and render --dry-run, wall and peak RSS (target: <= 2 s and <= 200 MB)
 #   sh          SH projection: sh_project (cargo bench) and a 2048×1024 EXR through `vscatter env`
 #   sh_project  only benches/sh_project.rs (4096×2048 map, 10 and 20 bands)
 #   versus      this binary against an earlier one (BENCH_OLD=path, or BENCH_OLD_REV=commit, default
@@ -338,7 +340,29 @@ section_batch() {
     printf "   moving 1 voxel a frame (of 128):    %s\n" "$("$VS" compare "$o/moving/m.1012.exr" "$o/moving/m.1013.exr" | head -1)"
 }
 
-SECTIONS=(bake render sun batch sh)
+section_tiles() {
+    need_tools; build_vscatter
+    local o="$BENCH_OUT/tiles"; mkdir -p "$o"
+    lscpu | awk -F': +' '/Model name/{print "cpu: " $2}'
+    printf "%-22s %-28s %7s %8s %4s  %-10s %s\n" file command wall_s rss_MB rc verdict load
+    local f name cmd
+    for f in fixtures/huge_root_tile.vdb fixtures/huge_tiles_2048.vdb; do
+        name=$(basename "$f" .vdb)
+        for cmd in info "bake --dry-run" "bake (refused)" "render --dry-run"; do
+            case $cmd in
+                info) run_timed "tiles_${name}_info" "$VS" info "$f" ;;
+                "bake --dry-run") run_timed "tiles_${name}_plan" "$VS" bake "$f" -o "$o/x.vtc" --dry-run ;;
+                "bake (refused)") run_timed "tiles_${name}_bake" "$VS" bake "$f" -o "$o/x.vtc" --max-memory 16G ;;
+                "render --dry-run") run_timed "tiles_${name}_render" "$VS" render "$f" -o "$o/x.png" --dry-run ;;
+            esac
+            local v="ok"
+            [ "$(verdict "$WALL" "<=" 2)" = ok ] && [ "$(verdict "$RSS_MB" "<=" 200)" = ok ] || v="MISS"
+            printf "%-22s %-28s %7s %8s %4s  %-10s %s\n" "$name" "$cmd" "$WALL" "$RSS_MB" "$RC" "$v" "$LOAD"
+        done
+    done
+}
+
+SECTIONS=(bake render sun batch tiles sh)
 
 run=("$@")
 { [ ${#run[@]} -eq 0 ] || [ "${run[0]}" = all ]; } && run=("${SECTIONS[@]}")
