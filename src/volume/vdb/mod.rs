@@ -154,10 +154,26 @@ impl GridInfo {
     }
 }
 
+/// A VDB file's bytes: mapped from disk, or given in memory (a fuzzer's input).
+enum Bytes {
+    Mapped(memmap2::Mmap),
+    Owned(Vec<u8>),
+}
+
+impl std::ops::Deref for Bytes {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        match self {
+            Bytes::Mapped(m) => m,
+            Bytes::Owned(v) => v,
+        }
+    }
+}
+
 /// An opened VDB file: its bytes and the list of its grids.
 pub struct VdbFile {
     path: PathBuf,
-    data: memmap2::Mmap,
+    data: Bytes,
     pub version: u32,
     pub library: (u32, u32),
     pub grids: Vec<GridInfo>,
@@ -178,6 +194,25 @@ impl VdbFile {
         // SAFETY: the map is read-only and private to this process; a file truncated by another
         // process while mapped is the one case no reader of a shared file can defend against.
         let data = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| Error::io(path, e))?;
+        VdbFile::indexed(path, Bytes::Mapped(data))
+    }
+
+    /// Indexes a VDB file held in memory as [`VdbFile::open`] does one on disk; `name` stands for
+    /// its path in errors. The reader's fuzz target (tools/fuzz) drives it.
+    pub fn from_bytes(name: &str, bytes: Vec<u8>) -> Result<VdbFile> {
+        if bytes.len() < HEADER_LEN {
+            return Err(Error::format(
+                name,
+                format!(
+                    "not a VDB file: {} bytes, shorter than a VDB header",
+                    bytes.len()
+                ),
+            ));
+        }
+        VdbFile::indexed(Path::new(name), Bytes::Owned(bytes))
+    }
+
+    fn indexed(path: &Path, data: Bytes) -> Result<VdbFile> {
         let mut vdb = VdbFile {
             path: path.to_path_buf(),
             data,
