@@ -6,6 +6,8 @@
 #   sun_torus.png / sun_cloud.png           one sun, black sky, single scattering
 #   cloud_studio.png / cloud_split.png      one bake relit by two HDRIs (thesis fig. 6.2)
 #   torus_studio.png           the two intertwined rings (thesis "torus")
+#   orbit.1001.png …           four frames of fixtures/sequence, batch-baked, orbited under the sky
+#                              (orbit_pathtrace.*: the path tracer's, same cameras)
 # The relit pair comes from one cache: only the environment changes between them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -47,4 +49,10 @@ for fx in torus cloud; do
     $VS render "${sun[@]}" -o "$OUT/sun_$fx.png" --single-scatter
     $VS render "${sun[@]}" -o "$OUT/sun_${fx}_pathtrace.png" --method pathtrace --max-bounces 1 --spp "$SPP"
 done
+# A sequence: batch, then four frames of a 360° orbit (one a quarter turn), framed alike.
+$VS batch 'fixtures/sequence/cloud.####.vdb' --out-dir "$TMP/seq" --quiet
+$VS render "$TMP/seq/cloud.####.vtc" --frames 1001-1012:3 --orbit 360 -o "$OUT/orbit.####.png" \
+    --res 320x180 --force --quiet
+$VS render "$TMP/seq/cloud.####.vtc" --frames 1001-1012:3 --orbit 360 -o "$OUT/orbit_pathtrace.####.png" \
+    --res 320x180 --force --quiet --method pathtrace --spp "$SPP"
 echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png and the path tracer's three"
