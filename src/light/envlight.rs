@@ -113,6 +113,7 @@ mod tests {
             window: Window::None,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         }
     }
 

@@ -33,6 +33,9 @@ pub struct Lighting {
     /// What the search for a sun in the map found, one line: `Ok` a sun taken out of the map,
     /// `Err` why none was (`None`: no search was made).
     pub sun_search: Option<std::result::Result<String, String>>,
+    /// The map's SH projection by band count, made once: a sequence renders every frame under
+    /// the same map without projecting it again.
+    pub projections: std::sync::Mutex<Vec<(usize, Vec<[f32; 3]>)>>,
 }
 
 /// How to light a render besides the map itself.
@@ -66,6 +69,7 @@ impl Lighting {
             window: options.window,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         };
         if sky && options.suns.is_empty() && !sun_in_map {
             lighting.add_map_sun(env::sky_sun());
@@ -102,13 +106,20 @@ impl Lighting {
     /// The RGB SH coefficients of the light for `bands` bands, windowed, turned and scaled: what
     /// relighting multiplies the transfer with.
     pub fn sh_coefficients(&self, bands: usize) -> Vec<[f32; 3]> {
+        let mut kept = self.projections.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, c)) = kept.iter().find(|(b, _)| *b == bands) {
+            return c.clone();
+        }
         let mut sh = self.env.project(bands);
         sh.apply_window(self.window);
         sh.rotate_y(self.rotation);
-        sh.coeffs
+        let c: Vec<[f32; 3]> = sh
+            .coeffs
             .iter()
             .map(|c| c.map(|v| v * self.scale))
-            .collect()
+            .collect();
+        kept.push((bands, c.clone()));
+        c
     }
 
     /// Radiance arriving from the world direction `dir` (unit): the background behind the volume,
@@ -163,6 +174,7 @@ mod tests {
             window: Window::None,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         };
         for d in [
             Vec3::new(0.3, 0.5, -0.8),
@@ -201,6 +213,7 @@ mod tests {
             window: Window::Hamming,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         };
         let coeffs = lighting.sh_coefficients(3);
         // L = c: c_00 = ∫ c·Y00 dω = c·√(4π), times the scale; the turn and window keep band 0.
@@ -211,6 +224,10 @@ mod tests {
                 "{coeffs:?}"
             );
         }
+        // Projected once per band count: a second call is the kept copy.
+        assert_eq!(lighting.sh_coefficients(3), coeffs);
+        lighting.sh_coefficients(2);
+        assert_eq!(lighting.projections.lock().unwrap().len(), 2);
         // Higher bands: only the pixel quadrature's error, well under 1e-3 of the DC term.
         let dc = coeffs[0][2];
         assert!(

@@ -247,6 +247,7 @@ mod tests {
             window: Window::None,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         };
         let light = lighting.sampler();
         let tracer = PathTracer {
@@ -314,6 +315,7 @@ mod tests {
             window: Window::None,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         };
         let light = lighting.sampler();
         let tracer = PathTracer {

@@ -276,6 +276,7 @@ mod tests {
             window: Window::None,
             suns: Vec::new(),
             sun_search: None,
+            projections: Default::default(),
         };
         let bg = |_: Vec3| c;
         let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 24, 16, 45.0).unwrap();
