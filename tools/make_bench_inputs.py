@@ -8,6 +8,10 @@ Outputs (cached: an existing file is skipped unless --force):
   helix600.vdb     thin smoke helix (tube radius 6) in a ~600^3 mostly empty box, built sparsely
   block300.vdb     uniform 0.5 block over [0,299]^3 via fill -> 128^3 and 8^3 active tiles + leaves
   cloud_large.vdb  ~200 x 170 x 320 cumulus (same generator as fixtures/cloud.vdb)
+Production scale, made only when named with --only (minutes and gigabytes of work each):
+  cloud_quarter.vdb  ~500 x 340 x 610 cumulus, the size of the public Disney cloud at 1/4
+  cloud_half.vdb     ~1000 x 680 x 1220 cumulus, the Disney cloud at 1/2 (>= 150 M active voxels)
+Both are built 64 x-slices at a time: no more than a slab of dense noise is held.
   cloud_seq/cloud.1001.vdb ... cloud.1024.vdb
                    24 frames of a 128^3 cumulus drifting +1 voxel in x per frame (batch bench)
 All grids are float fog volumes named "density", voxel size 1; header UUIDs are fixed, so the
@@ -26,6 +30,10 @@ BENCH = {
     "helix600.vdb": lambda: G.helix_grid(box=600, helix_radius=180.0, turns=4.0, tube=6.0),
     "block300.vdb": lambda: G.block_grid((0, 0, 0), (299, 299, 299), 0.5),
     "cloud_large.vdb": lambda: G.cumulus_grid((200, 170, 320), seed=2024, base_period=48, octaves=6),
+}
+SCALE = {
+    "cloud_quarter.vdb": lambda: G.cumulus_grid((500, 340, 610), seed=2025, base_period=96, octaves=6),
+    "cloud_half.vdb": lambda: G.cumulus_grid((1000, 680, 1220), seed=2025, base_period=192, octaves=7),
 }
 
 
@@ -65,7 +73,9 @@ def main(argv):
     os.makedirs(out, exist_ok=True)
     if not only or "cloud_seq" in only:
         make_sequence(out, force)
-    for name, make in BENCH.items():
+    wanted = dict(BENCH)
+    wanted.update({n: m for n, m in SCALE.items() if only and (n in only or n[:-4] in only)})
+    for name, make in wanted.items():
         if only and name not in only and name[:-4] not in only:
             continue
         path = os.path.join(out, name)

@@ -260,18 +260,27 @@ impl SparseGrid {
         self.bbox_where(|v| v >= threshold)
     }
 
-    fn bbox_where(&self, keep: impl Fn(f32) -> bool) -> Option<(IVec3, IVec3)> {
-        let mut lo = IVec3::MAX;
-        let mut hi = IVec3::MIN;
-        for leaf in &self.leaves {
-            for slot in 0..LEAF_VOXELS {
-                if leaf.is_active(slot) && keep(leaf.values[slot]) {
-                    let p = leaf.origin + slot_offset(slot);
-                    lo = lo.min(p);
-                    hi = hi.max(p);
+    fn bbox_where(&self, keep: impl Fn(f32) -> bool + Sync) -> Option<(IVec3, IVec3)> {
+        use rayon::prelude::*;
+        // Leaves in parallel: min and max give the same box in any order.
+        let (mut lo, mut hi) = self
+            .leaves
+            .par_iter()
+            .map(|leaf| {
+                let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
+                for slot in 0..LEAF_VOXELS {
+                    if leaf.is_active(slot) && keep(leaf.values[slot]) {
+                        let p = leaf.origin + slot_offset(slot);
+                        lo = lo.min(p);
+                        hi = hi.max(p);
+                    }
                 }
-            }
-        }
+                (lo, hi)
+            })
+            .reduce(
+                || (IVec3::MAX, IVec3::MIN),
+                |(a, b), (c, d)| (a.min(c), b.max(d)),
+            );
         for level in TileLevel::ALL {
             for (origin, _) in self.tiles(level).filter(|(_, v)| keep(*v)) {
                 lo = lo.min(origin);
@@ -291,17 +300,33 @@ impl SparseGrid {
             max: f32::NEG_INFINITY,
             sum: 0.0,
         };
-        let mut any = false;
-        for leaf in &self.leaves {
-            for slot in 0..LEAF_VOXELS {
-                if leaf.is_active(slot) {
-                    let v = leaf.values[slot];
-                    s.min = s.min.min(v);
-                    s.max = s.max.max(v);
-                    s.sum += v as f64;
-                    any = true;
+        use rayon::prelude::*;
+        // Each leaf's stats in parallel, then added up in leaf order: the same sum on any thread
+        // count.
+        let per_leaf: Vec<(f32, f32, f64, bool)> = self
+            .leaves
+            .par_iter()
+            .map(|leaf| {
+                let (mut min, mut max, mut sum, mut any) =
+                    (f32::INFINITY, f32::NEG_INFINITY, 0.0f64, false);
+                for slot in 0..LEAF_VOXELS {
+                    if leaf.is_active(slot) {
+                        let v = leaf.values[slot];
+                        min = min.min(v);
+                        max = max.max(v);
+                        sum += v as f64;
+                        any = true;
+                    }
                 }
-            }
+                (min, max, sum, any)
+            })
+            .collect();
+        let mut any = false;
+        for (min, max, sum, a) in per_leaf {
+            s.min = s.min.min(min);
+            s.max = s.max.max(max);
+            s.sum += sum;
+            any |= a;
         }
         for level in TileLevel::ALL {
             for (_, v) in self.tiles(level) {
