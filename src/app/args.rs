@@ -141,7 +141,8 @@ pub struct BakeArgs {
     /// Print the memory estimate and stop.
     #[arg(long)]
     pub dry_run: bool,
-    /// Refuse bakes estimated to need more (e.g. 8G; default 80 % of available memory).
+    /// Refuse bakes estimated to need more (e.g. 8G; default 80 % of the available memory or of
+    /// the job's cgroup limit, whichever is smaller; for `batch`, of all frames in flight).
     #[arg(long, value_name = "SIZE")]
     pub max_memory: Option<String>,
 }
