@@ -106,6 +106,33 @@ pub struct Leaf {
 }
 
 impl Leaf {
+    /// A leaf of `values` in slot order. Inactive voxels take `background`, so sampling never
+    /// sees the arbitrary values a writer may leave in them.
+    pub fn new(
+        origin: IVec3,
+        mask: [u64; 8],
+        mut values: [f32; LEAF_VOXELS],
+        background: f32,
+    ) -> Leaf {
+        let mut max = f32::NEG_INFINITY;
+        for (slot, v) in values.iter_mut().enumerate() {
+            if mask[slot >> 6] >> (slot & 63) & 1 == 1 {
+                max = max.max(*v);
+            } else {
+                *v = background;
+            }
+        }
+        if max == f32::NEG_INFINITY {
+            max = background;
+        }
+        Leaf {
+            origin,
+            mask,
+            values,
+            max,
+        }
+    }
+
     /// The slot of voxel `ijk` (which must lie in this leaf).
     #[inline]
     pub fn slot(ijk: IVec3) -> usize {
@@ -166,29 +193,19 @@ impl SparseGrid {
         }
     }
 
-    /// Adds a leaf; `values` in slot order. Inactive voxels take the background, so sampling
-    /// never sees the arbitrary values a writer may leave in them.
-    pub fn insert_leaf(&mut self, origin: IVec3, mask: [u64; 8], mut values: [f32; LEAF_VOXELS]) {
-        let mut max = f32::NEG_INFINITY;
-        for (slot, v) in values.iter_mut().enumerate() {
-            if mask[slot >> 6] >> (slot & 63) & 1 == 1 {
-                max = max.max(*v);
-            } else {
-                *v = self.background;
-            }
-        }
-        if max == f32::NEG_INFINITY {
-            max = self.background;
-        }
-        let key = origin >> LEAF_LOG2;
+    /// Adds a leaf; `values` in slot order ([`Leaf::new`]).
+    pub fn insert_leaf(&mut self, origin: IVec3, mask: [u64; 8], values: [f32; LEAF_VOXELS]) {
+        let leaf = Leaf::new(origin, mask, values, self.background);
+        self.push_leaf(leaf);
+    }
+
+    /// Adds a leaf made by [`Leaf::new`] with this grid's background (a reader makes them in
+    /// parallel, then adds them in order).
+    pub fn push_leaf(&mut self, leaf: Leaf) {
+        let key = leaf.origin >> LEAF_LOG2;
         self.leaf_index.insert(key, self.leaves.len() as u32);
-        self.leaves.push(Leaf {
-            origin,
-            mask,
-            values,
-            max,
-        });
-        self.raise_node_max(origin >> 7, max);
+        self.raise_node_max(leaf.origin >> 7, leaf.max);
+        self.leaves.push(leaf);
     }
 
     /// Adds an active constant tile at its own level (inactive tiles are background and not kept).

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::codec::{decode_block, parse_block, ValueBlock, ValueFormat};
 use super::cursor::Cursor;
 use super::VdbError;
-use crate::volume::grid::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+use crate::volume::grid::{Leaf, SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 
 /// Bytes of a leaf's value mask.
 const LEAF_MASK_BYTES: usize = LEAF_VOXELS / 8;
@@ -259,21 +259,22 @@ fn read_leaf_buffers(
         }
     }
     for (leaf_batch, block_batch) in leaves.chunks(DECODE_BATCH).zip(blocks.chunks(DECODE_BATCH)) {
-        let decoded: Vec<Box<[f32; LEAF_VOXELS]>> = leaf_batch
+        // Decoded, masked and measured in parallel; added to the grid in file order.
+        let decoded: Vec<Box<Leaf>> = leaf_batch
             .par_iter()
             .zip(block_batch)
             .map_init(
                 || (Vec::new(), Vec::new()),
                 |(scratch, values), (leaf, block)| {
                     decode_block(block, fmt, scratch, values)?;
-                    let mut out = Box::new([background; LEAF_VOXELS]);
+                    let mut out = [background; LEAF_VOXELS];
                     scatter_active(&leaf.mask, values, LEAF_VOXELS, |n, v| out[n] = v);
-                    Ok(out)
+                    Ok(Box::new(Leaf::new(leaf.origin, leaf.mask, out, background)))
                 },
             )
             .collect::<Result<_, VdbError>>()?;
-        for (leaf, values) in leaf_batch.iter().zip(decoded) {
-            grid.insert_leaf(leaf.origin, leaf.mask, *values);
+        for leaf in decoded {
+            grid.push_leaf(*leaf);
         }
     }
     Ok(())
