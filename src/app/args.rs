@@ -12,6 +12,7 @@ use vscatter::light::sun::Sun;
 use vscatter::light::LightOptions;
 use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
+use vscatter::sequence::{FrameRange, Shard};
 use vscatter::transfer::memory::MAX_SCALE;
 use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
 
@@ -92,17 +93,34 @@ pub struct BatchArgs {
     /// Where the caches go, named after their inputs (`cloud.1001.vdb` → `DIR/cloud.1001.vtc`).
     #[arg(long, value_name = "DIR")]
     pub out_dir: PathBuf,
+    #[command(flatten)]
+    pub sequence: SequenceArgs,
+    #[command(flatten)]
+    pub bake: BakeArgs,
+}
+
+/// Which frames of a sequence to do, and whether current outputs are done again: shared by
+/// `batch` and sequence renders.
+#[derive(Debug, Clone, Default, Args)]
+pub struct SequenceArgs {
     /// The frames of a pattern: FIRST-LAST[:STEP] (default: every file that matches).
     #[arg(long, value_name = "FIRST-LAST[:STEP]", allow_hyphen_values = true)]
     pub frames: Option<String>,
-    /// Take task K's share of N (1 ≤ K ≤ N): N farm tasks convert every frame exactly once.
+    /// Take task K's share of N (1 ≤ K ≤ N): N farm tasks cover every frame exactly once.
     #[arg(long, value_name = "K/N")]
     pub shard: Option<String>,
-    /// Bake every frame, even where its cache is current.
+    /// Do every frame, even where its output (a cache, an image) is current.
     #[arg(long)]
     pub force: bool,
-    #[command(flatten)]
-    pub bake: BakeArgs,
+}
+
+impl SequenceArgs {
+    /// `--frames` and `--shard`, checked.
+    pub fn validate(&self) -> Result<(Option<FrameRange>, Option<Shard>)> {
+        let range = self.frames.as_deref().map(FrameRange::parse).transpose()?;
+        let shard = self.shard.as_deref().map(Shard::parse).transpose()?;
+        Ok((range, shard))
+    }
 }
 
 /// The bake flags, shared by every command that bakes.
@@ -281,15 +299,8 @@ pub struct RenderArgs {
     /// commas, render an image under each (`img.ENVNAME.####.exr`).
     #[arg(long, value_name = "ENV", default_value = vscatter::light::env::SKY_SPEC)]
     pub env: String,
-    /// The frames of a pattern: FIRST-LAST[:STEP] (default: every file that matches).
-    #[arg(long, value_name = "FIRST-LAST[:STEP]", allow_hyphen_values = true)]
-    pub frames: Option<String>,
-    /// Take task K's share of N of a sequence's frames (1 ≤ K ≤ N).
-    #[arg(long, value_name = "K/N")]
-    pub shard: Option<String>,
-    /// Render every image of a sequence, even those already made with these settings.
-    #[arg(long)]
-    pub force: bool,
+    #[command(flatten)]
+    pub sequence: SequenceArgs,
     /// Orbit the camera this many degrees about the volume's centre over the sequence.
     #[arg(
         long,

@@ -16,7 +16,7 @@ use vscatter::batch::{Batch, FrameReport, Report, Status};
 use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::scene::{cache_is_current, Scene};
-use vscatter::sequence::{self, FrameRange, Shard};
+use vscatter::sequence;
 use vscatter::transfer::memory::default_limit;
 use vscatter::{Error, Result};
 
@@ -25,8 +25,7 @@ const FALLBACK_MEMORY: u64 = 4 << 30;
 
 pub fn run(args: &BatchArgs, global: &GlobalArgs, threads: usize) -> Result<()> {
     let config = args.bake.validate()?;
-    let range = args.frames.as_deref().map(FrameRange::parse).transpose()?;
-    let shard = args.shard.as_deref().map(Shard::parse).transpose()?;
+    let (range, shard) = args.sequence.validate()?;
     let resolved = sequence::resolve(&args.inputs, range)?;
     let outputs = sequence::outputs_in(&args.out_dir, &resolved.frames, "vtc")?;
     let mut jobs: Vec<(PathBuf, PathBuf)> = resolved
@@ -60,7 +59,7 @@ pub fn run(args: &BatchArgs, global: &GlobalArgs, threads: usize) -> Result<()> 
         );
     }
     if args.bake.dry_run {
-        return dry_run(&jobs, &config, args.force);
+        return dry_run(&jobs, &config, args.sequence.force);
     }
 
     let memory = config
@@ -70,7 +69,7 @@ pub fn run(args: &BatchArgs, global: &GlobalArgs, threads: usize) -> Result<()> 
     let batch = Batch {
         jobs: &jobs,
         config: &config,
-        force: args.force,
+        force: args.sequence.force,
         memory,
         workers: threads,
     };

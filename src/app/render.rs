@@ -11,7 +11,7 @@ use glam::Vec3;
 use indicatif::{HumanBytes, ProgressBar};
 use serde_json::{json, Value};
 
-use super::args::{GlobalArgs, Method, RenderArgs};
+use super::args::{GlobalArgs, Method, RenderArgs, SequenceArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
 use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
@@ -23,7 +23,7 @@ use vscatter::render::motion::Motion;
 use vscatter::render::{framing_bounds, Camera, CameraSpec, Frame, MarchSettings};
 use vscatter::scene::{self, BakeConfig, Scene, TraceSettings};
 use vscatter::sequence::Frame as SequenceFrame;
-use vscatter::sequence::{self, FramePattern, FrameRange, Shard};
+use vscatter::sequence::{self, FramePattern};
 use vscatter::transfer::cache::Source;
 use vscatter::transfer::memory::check_sun_budget;
 use vscatter::{Error, Result};
@@ -123,8 +123,7 @@ struct Shot {
 
 impl Shot {
     fn plan(args: &RenderArgs) -> Result<Shot> {
-        let range = args.frames.as_deref().map(FrameRange::parse).transpose()?;
-        let shard = args.shard.as_deref().map(Shard::parse).transpose()?;
+        let (range, shard) = args.sequence.validate()?;
         let resolved = sequence::resolve(std::slice::from_ref(&args.input), range)?;
         let envs: Vec<String> = args.env.split(',').map(|e| e.trim().to_string()).collect();
         let output = args.output.to_string_lossy().into_owned();
@@ -317,9 +316,7 @@ impl Job<'_> {
             input: String::new(),
             output: PathBuf::new(),
             env: String::new(),
-            frames: None,
-            shard: None,
-            force: false,
+            sequence: SequenceArgs::default(),
             ..self.args.clone()
         };
         let env_file = match env.as_str() {
@@ -350,7 +347,7 @@ impl Job<'_> {
             .framing
             .map(|b| self.camera_spec(k, Some(b)))
             .transpose()?;
-        if let (Some(spec), true, false) = (known, shot.sequence, args.force) {
+        if let (Some(spec), true, false) = (known, shot.sequence, args.sequence.force) {
             let current = outputs
                 .iter()
                 .enumerate()
