@@ -60,3 +60,15 @@ pub fn assert_clean_failure(out: &Output, code: i32, names: &str) {
     assert_eq!(err.trim_end().lines().count(), 1, "not one line: {err}");
     assert!(err.contains(names), "{err:?} does not name {names:?}");
 }
+
+/// The fixture sequence (tools/make_sequence.sh), copied into `dir/seq`: tests touch and damage
+/// their own copy.
+pub fn sequence_in(dir: &Path) -> PathBuf {
+    let seq = dir.join("seq");
+    std::fs::create_dir_all(&seq).unwrap();
+    for n in 1001..=1012 {
+        let name = format!("cloud.{n}.vdb");
+        std::fs::copy(fixture("sequence").join(&name), seq.join(&name)).unwrap();
+    }
+    seq
+}

@@ -6,19 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::{assert_clean_failure, fixture, stderr, vscatter_in, QUICK_BAKE};
-
-/// The fixture sequence (tools/make_sequence.sh), copied into `dir/seq`: tests touch and damage
-/// their own copy.
-fn sequence_in(dir: &Path) -> PathBuf {
-    let seq = dir.join("seq");
-    std::fs::create_dir_all(&seq).unwrap();
-    for n in 1001..=1012 {
-        let name = format!("cloud.{n}.vdb");
-        std::fs::copy(fixture("sequence").join(&name), seq.join(&name)).unwrap();
-    }
-    seq
-}
+use crate::{assert_clean_failure, fixture, sequence_in, stderr, vscatter_in, QUICK_BAKE};
 
 /// Runs a batch with `--stats` and the quick bake; returns the exit code, the stats and stderr.
 fn batch(dir: &Path, args: &[&str]) -> (Option<i32>, serde_json::Value, String) {
@@ -28,6 +16,21 @@ fn batch(dir: &Path, args: &[&str]) -> (Option<i32>, serde_json::Value, String) 
     let o = vscatter_in(dir, &all);
     let stats = serde_json::from_slice(&o.stdout).unwrap_or(serde_json::Value::Null);
     (o.status.code(), stats, stderr(&o))
+}
+
+/// What `batch --dry-run` of the copied sequence into `out` prints, checking it succeeds.
+fn dry_run(dir: &Path) -> String {
+    let mut args = vec![
+        "batch",
+        "seq/cloud.####.vdb",
+        "--out-dir",
+        "out",
+        "--dry-run",
+    ];
+    args.extend(QUICK_BAKE);
+    let o = vscatter_in(dir, &args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
 /// The file names of the frames with `status` in a batch's stats.
@@ -79,24 +82,7 @@ fn every_pattern_names_the_same_frames_and_current_caches_are_skipped() {
         assert!(with_status(&stats, "baked").is_empty(), "{spelling:?}");
     }
     // A dry run says so, frame by frame, and bakes nothing.
-    let o = vscatter_in(
-        dir.path(),
-        &[
-            "batch",
-            "seq/cloud.####.vdb",
-            "--out-dir",
-            "out",
-            "--dry-run",
-            "--bands",
-            "3",
-            "--scale",
-            "4",
-            "--samples",
-            "64",
-        ],
-    );
-    let said = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let said = dry_run(dir.path());
     assert_eq!(
         said.lines().filter(|l| l.contains(": current (")).count(),
         12,
@@ -108,23 +94,7 @@ fn every_pattern_names_the_same_frames_and_current_caches_are_skipped() {
     f.set_modified(std::time::SystemTime::now() + Duration::from_secs(5))
         .unwrap();
     drop(f);
-    let o = vscatter_in(
-        dir.path(),
-        &[
-            "batch",
-            "seq/cloud.####.vdb",
-            "--out-dir",
-            "out",
-            "--dry-run",
-            "--bands",
-            "3",
-            "--scale",
-            "4",
-            "--samples",
-            "64",
-        ],
-    );
-    let said = String::from_utf8_lossy(&o.stdout);
+    let said = dry_run(dir.path());
     assert_eq!(
         said.lines()
             .filter(|l| l.contains("transfer voxels"))

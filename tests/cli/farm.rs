@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 use std::path::Path;
 use std::process::Command;
 
-use crate::{fixture, QUICK_BAKE};
+use crate::{sequence_in, QUICK_BAKE};
 
 fn is_root() -> bool {
     Command::new("id")
@@ -38,12 +38,7 @@ fn the_slurm_array_script_converts_every_frame_exactly_once() {
         String::from_utf8_lossy(&started.stderr)
     );
     let dir = tempfile::tempdir().unwrap();
-    let seq = dir.path().join("seq");
-    std::fs::create_dir(&seq).unwrap();
-    for n in 1001..=1012 {
-        let name = format!("cloud.{n}.vdb");
-        std::fs::copy(fixture("sequence").join(&name), seq.join(&name)).unwrap();
-    }
+    sequence_in(dir.path());
     let mut args = vec![
         "--wait".to_string(),
         "--array=1-3".into(),
