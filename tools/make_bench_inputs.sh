@@ -5,9 +5,6 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 OUT="${1:-$ROOT/target/bench-inputs}"
 [ $# -gt 0 ] && shift
-if ! /usr/bin/python3 -c 'import pyopenvdb, numpy' >/dev/null 2>&1; then
-    SUDO=""; [ "$(id -u)" = 0 ] || SUDO=sudo
-    $SUDO apt-get update
-    $SUDO apt-get install -y libopenvdb-tools python3-openvdb python3-numpy
-fi
+source "$ROOT/tools/need_openvdb.sh"
+need_openvdb
 exec /usr/bin/python3 "$ROOT/tools/make_bench_inputs.py" "$OUT" "$@"

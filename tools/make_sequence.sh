@@ -10,15 +10,8 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 OUT="${1:-$ROOT/fixtures/sequence}"
 PY=/usr/bin/python3
 
-need_install=0
-command -v vdb_print >/dev/null 2>&1 || need_install=1
-"$PY" -c 'import pyopenvdb, numpy' >/dev/null 2>&1 || need_install=1
-if [ "$need_install" = 1 ]; then
-    SUDO=""
-    [ "$(id -u)" = 0 ] || SUDO=sudo
-    $SUDO apt-get update
-    $SUDO apt-get install -y libopenvdb-tools python3-openvdb python3-numpy
-fi
+source "$ROOT/tools/need_openvdb.sh"
+need_openvdb
 
 mkdir -p "$OUT"
 

@@ -4,12 +4,11 @@
 # counts them (fixtures/huge_tiles.json).
 #   huge_root_tile.vdb   one root-level tile: [0, 4095]³ at 0.5 (68 719 476 736 voxels)
 #   huge_tiles_2048.vdb  a 2048³ box of 4096 128³ tiles at 0.5 (8 589 934 592 voxels)
-# Needs Debian's python3-openvdb (installed here when missing, as root).
+# Needs Debian's python3-openvdb (installed when missing: tools/need_openvdb.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-if ! /usr/bin/python3 -c 'import pyopenvdb' 2>/dev/null; then
-    apt-get update && apt-get install -y python3-openvdb
-fi
+source tools/need_openvdb.sh
+need_openvdb
 /usr/bin/python3 - <<'PY'
 import json, sys
 sys.path.insert(0, "tools")
