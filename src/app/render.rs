@@ -306,11 +306,9 @@ impl Job<'_> {
             .spec_at(&self.spec, start, lookat, number, *index, self.shot.total))
     }
 
-    /// A fingerprint of everything that makes the `k`-th frame's image under map `e`: the input
-    /// file's identity, the map's, the flags, and the camera.
-    fn fingerprint(&self, k: usize, e: usize, spec: &CameraSpec) -> u64 {
-        let input = &self.shot.frames[k].1.path;
-        let env = &self.shot.envs[e];
+    /// A fingerprint of everything that makes each of the `k`-th frame's images, one per map: the
+    /// input file's identity, the map's, the flags, and the camera.
+    fn fingerprints(&self, k: usize, spec: &CameraSpec) -> Vec<u64> {
         let file = |p: &Path| Source::of(p).map(|s| format!("{s:?}")).unwrap_or_default();
         let flags = RenderArgs {
             input: String::new(),
@@ -319,16 +317,22 @@ impl Job<'_> {
             sequence: SequenceArgs::default(),
             ..self.args.clone()
         };
-        let env_file = match env.as_str() {
-            vscatter::light::env::SKY_SPEC => String::new(),
-            path => file(Path::new(path)),
-        };
-        let text = format!(
-            "{}|{env}|{env_file}|{flags:?}|{spec:?}|{:?}",
-            file(input),
+        let frame = format!(
+            "{}|{flags:?}|{spec:?}|{:?}",
+            file(&self.shot.frames[k].1.path),
             self.framing
         );
-        xxhash_rust::xxh3::xxh3_64(text.as_bytes())
+        self.shot
+            .envs
+            .iter()
+            .map(|env| {
+                let env_file = match env.as_str() {
+                    vscatter::light::env::SKY_SPEC => String::new(),
+                    path => file(Path::new(path)),
+                };
+                xxhash_rust::xxh3::xxh3_64(format!("{env}|{env_file}|{frame}").as_bytes())
+            })
+            .collect()
     }
 
     /// Renders the `k`-th frame of this task's share under every map, unless (in a sequence)
@@ -347,11 +351,14 @@ impl Job<'_> {
             .framing
             .map(|b| self.camera_spec(k, Some(b)))
             .transpose()?;
-        if let (Some(spec), true, false) = (known, shot.sequence, args.sequence.force) {
+        let known_prints = known
+            .filter(|_| shot.sequence)
+            .map(|spec| self.fingerprints(k, &spec));
+        if let (Some(prints), false) = (&known_prints, args.sequence.force) {
             let current = outputs
                 .iter()
-                .enumerate()
-                .all(|(e, o)| read_fingerprint(o) == Some(self.fingerprint(k, e, &spec)));
+                .zip(prints)
+                .all(|(o, p)| read_fingerprint(o) == Some(*p));
             if current && !args.bake.dry_run {
                 return Ok(Made::Current);
             }
@@ -364,6 +371,12 @@ impl Job<'_> {
             None => self.camera_spec(k, bounds)?,
         };
         let camera = spec.camera(bounds)?;
+        // Only a sequence skips current images; a single render always renders.
+        let prints = match known_prints {
+            Some(prints) => prints,
+            None if shot.sequence => self.fingerprints(k, &spec),
+            None => Vec::new(),
+        };
         for (e, lighting) in self.lightings.iter().enumerate() {
             let mut stats = json!({
                 "command": "render",
@@ -405,9 +418,8 @@ impl Job<'_> {
             view.bar.finish_and_clear();
             phase("write");
             let clock = Instant::now();
-            // Only a sequence skips current images; a single render always renders.
             let options = WriteOptions {
-                fingerprint: shot.sequence.then(|| self.fingerprint(k, e, &spec)),
+                fingerprint: prints.get(e).copied(),
                 ..args.write_options()
             };
             frame.into_image().write(&outputs[e], &options)?;
