@@ -86,7 +86,7 @@ pub const CONVERGENCE: f64 = 1e-4;
 pub const MAX_GENERATIONS: usize = 5000;
 /// Coefficients transported together: 8 f32 fill a SIMD-friendly run, and the per-chunk buffers
 /// (3 × nodes × 8 floats) keep peak memory bounded whatever the band count.
-const CHUNK: usize = 8;
+pub(crate) const CHUNK: usize = 8;
 const NO_LINK: u32 = u32::MAX;
 /// Longest segment marched, in sub-steps: a corner link at K = 64 is 64·√3 / 0.5 ≈ 222 steps.
 const MAX_SEGMENT_STEPS: usize = 256;
@@ -177,23 +177,33 @@ impl Directions {
     }
 }
 
-/// Per cell and direction (index x·D + j): where the link lands and how the cell's segment along
-/// d_j transmits, emits and accumulates fluence. Per unit of what the cell scatters, the emission
-/// terms include the share e_j and the self-scattering gain 1/(1 − α·s).
-struct Links {
-    dirs: Directions,
+/// One cell's segment along one direction: where its light goes and how the segment transmits,
+/// emits and accumulates fluence. Per unit of what the cell scatters, the emission terms include
+/// the share e_j and the self-scattering gain 1/(1 − α·s).
+#[derive(Debug, Clone, Copy)]
+struct Link {
+    /// The cell's slot.
+    node: u32,
     /// Slot of the next active cell along d_j, or `NO_LINK`.
-    target: Vec<u32>,
+    target: u32,
     /// e^(−τ) of the whole segment.
-    trans: Vec<f32>,
+    trans: f32,
     /// Fluence at the node per unit entering flux, ℓ·e^(−τ_½) (world units).
-    read_in: Vec<f32>,
+    read_in: f32,
     /// Share of the cell's scattered power that leaves along d_j: e_j·ε/(1 − α·s).
-    emit_out: Vec<f32>,
+    emit_out: f32,
     /// Fluence at the node per unit of the cell's scattered power: ℓ·e_j·η/(1 − α·s).
-    read_emit: Vec<f32>,
-    /// Node order of the sweep for each direction (ascending x·d_j).
-    order: Vec<Vec<u32>>,
+    read_emit: f32,
+}
+
+/// The lattice's links, stored per direction in the order that direction's sweep visits them, so
+/// a sweep streams its links front to back instead of gathering them across memory.
+struct Links {
+    /// Per direction, every cell's link in ascending x·d_j.
+    sweeps: Vec<Vec<Link>>,
+    /// Per direction, the cells with no active cell upstream along −d_j: where the environment
+    /// enters the line.
+    entries: Vec<Vec<u32>>,
     /// Flux entering each line from the environment, `D × coeffs`: P_ij = 4π·w_j·ȳ_ij/ℓ_j.
     inflow: Vec<f32>,
 }
@@ -230,24 +240,18 @@ fn build_links(
         .iter()
         .map(|off| (off.as_vec3() * k as f32 * scale).length())
         .collect();
-    let mut links = Links {
-        target: vec![NO_LINK; n * d],
-        trans: vec![0.0; n * d],
-        read_in: vec![0.0; n * d],
-        emit_out: vec![0.0; n * d],
-        read_emit: vec![0.0; n * d],
-        order: Vec::with_capacity(d),
-        inflow: inflow(&dirs, &lengths, bands),
-        dirs,
-    };
-    let dirs = &links.dirs;
-    links
-        .target
+    // Per cell (index x·D + j), as the cells are marched; rearranged per sweep below.
+    let mut target = vec![NO_LINK; n * d];
+    let mut trans = vec![0f32; n * d];
+    let mut read_in = vec![0f32; n * d];
+    let mut emit_out = vec![0f32; n * d];
+    let mut read_emit = vec![0f32; n * d];
+    target
         .par_chunks_mut(d)
-        .zip(links.trans.par_chunks_mut(d))
-        .zip(links.read_in.par_chunks_mut(d))
-        .zip(links.emit_out.par_chunks_mut(d))
-        .zip(links.read_emit.par_chunks_mut(d))
+        .zip(trans.par_chunks_mut(d))
+        .zip(read_in.par_chunks_mut(d))
+        .zip(emit_out.par_chunks_mut(d))
+        .zip(read_emit.par_chunks_mut(d))
         .zip(layout.voxels().par_iter())
         .for_each(
             |(((((target, trans), read_in), emit_out), read_emit), &v)| {
@@ -296,13 +300,41 @@ fn build_links(
                 }
             },
         );
-    for off in &links.dirs.offsets {
-        let mut order: Vec<u32> = (0..n as u32).collect();
-        // Links always increase x·d_j, so ascending order sees every arrival before it leaves.
-        order.sort_by_key(|&s| (layout.voxels()[s as usize].dot(*off), s));
-        links.order.push(order);
+    let (sweeps, entries): (Vec<Vec<Link>>, Vec<Vec<u32>>) = dirs
+        .offsets
+        .par_iter()
+        .enumerate()
+        .map(|(j, off)| {
+            let mut order: Vec<u32> = (0..n as u32).collect();
+            // Links always increase x·d_j, so ascending order sees every arrival before it leaves.
+            order.sort_by_key(|&s| (layout.voxels()[s as usize].dot(*off), s));
+            let sweep = order
+                .iter()
+                .map(|&x| {
+                    let i = x as usize * d + j;
+                    Link {
+                        node: x,
+                        target: target[i],
+                        trans: trans[i],
+                        read_in: read_in[i],
+                        emit_out: emit_out[i],
+                        read_emit: read_emit[i],
+                    }
+                })
+                .collect();
+            let upstream = dirs.opposite[j];
+            let entry = order
+                .into_iter()
+                .filter(|&x| target[x as usize * d + upstream] == NO_LINK)
+                .collect();
+            (sweep, entry)
+        })
+        .unzip();
+    Links {
+        inflow: inflow(&dirs, &lengths, bands),
+        sweeps,
+        entries,
     }
-    links
 }
 
 /// Quadrature points for the Voronoi means ȳ_ij: 65 536 spherical-Fibonacci points put ~2 500 in
@@ -444,17 +476,21 @@ fn transport_chunk(
     generations: Option<usize>,
 ) -> (Vec<f32>, LatticeStats) {
     let (coeffs, albedo) = (first.bands * first.bands, first.medium.albedo);
-    let n = links.order[0].len();
-    let d = links.dirs.len();
+    let n = links.sweeps[0].len();
     // The coefficients transported, what the first generation emits, and where it starts:
     // the environment enters at generation 0 and emits nothing; a known emission is generation 1.
     let (c0, width, mut emit, start) = match drive {
-        Drive::Environment { c0, width } => (c0, width, vec![0f32; n * width], 0),
-        Drive::Emission(q) => (0, 1, q.to_vec(), 1),
+        Drive::Environment { c0, width } => (c0, width, vec![[0f32; CHUNK]; n], 0),
+        Drive::Emission(q) => {
+            let emit = q.iter().map(|&e| lanes(&[e])).collect();
+            (0, 1, emit, 1)
+        }
     };
-    let mut fluence = vec![0f32; n * width];
-    let mut next = vec![0f32; n * width];
-    let mut incoming = vec![0f32; n * width];
+    // Every node's coefficients as one row of CHUNK lanes (the unused ones stay zero), so the
+    // per-link update is a fixed-length loop the compiler turns into vector instructions.
+    let mut fluence = vec![[0f32; CHUNK]; n];
+    let mut next = vec![[0f32; CHUNK]; n];
+    let mut incoming = vec![[0f32; CHUNK]; n];
     let mut stats = LatticeStats {
         energy_single: (0..n).map(|x| first.t_ri[x * coeffs] as f64).sum(),
         ..Default::default()
@@ -466,40 +502,36 @@ fn transport_chunk(
         // (`emit` starts at zero) and is not read out, since T_ri stands for it.
         let inflow = generation == 0;
         let readout = if inflow { 0.0 } else { 1.0 };
-        next.iter_mut().for_each(|v| *v = 0.0);
+        next.iter_mut().for_each(|v| *v = [0.0; CHUNK]);
         let mut added = 0.0f64;
-        for j in 0..d {
-            incoming.iter_mut().for_each(|v| *v = 0.0);
-            let upstream = links.dirs.opposite[j];
-            for &x in &links.order[j] {
-                let x = x as usize;
-                let i = x * d + j;
-                let r = x * width;
-                if inflow && links.target[x * d + upstream] == NO_LINK {
-                    let p = &links.inflow[j * coeffs + c0..j * coeffs + c0 + width];
-                    incoming[r..r + width].copy_from_slice(p);
+        for (j, sweep) in links.sweeps.iter().enumerate() {
+            incoming.iter_mut().for_each(|v| *v = [0.0; CHUNK]);
+            if inflow {
+                // No active cell lies upstream of an entry, so nothing else reaches it on this sweep.
+                let p = lanes(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
+                for &x in &links.entries[j] {
+                    incoming[x as usize] = p;
                 }
-                let (trans, read_in) = (links.trans[i], links.read_in[i]);
-                let (emit_out, read_emit) = (links.emit_out[i], links.read_emit[i]);
+            }
+            for link in sweep {
+                let x = link.node as usize;
+                let (p, e) = (incoming[x], emit[x]);
+                let (fluence, next) = (&mut fluence[x], &mut next[x]);
                 let mut out = [0f32; CHUNK];
-                for c in 0..width {
-                    let p = incoming[r + c];
-                    let e = emit[r + c];
-                    let contribution = readout * (p * read_in + e * read_emit);
-                    fluence[r + c] += contribution;
+                for c in 0..CHUNK {
+                    fluence[c] += readout * (p[c] * link.read_in + e[c] * link.read_emit);
                     // Only entering flux feeds the next generation: the cell's own emission
                     // re-collides inside its self-scattering gain already.
-                    next[r + c] += albedo * p * (1.0 - trans);
-                    out[c] = p * trans + e * emit_out;
-                    if c0 + c == 0 {
-                        added += contribution as f64;
-                    }
+                    next[c] += albedo * p[c] * (1.0 - link.trans);
+                    out[c] = p[c] * link.trans + e[c] * link.emit_out;
                 }
-                let target = links.target[i];
-                if target != NO_LINK {
-                    let t = target as usize * width;
-                    for c in 0..width {
-                        incoming[t + c] += out[c];
+                if c0 == 0 {
+                    added += (readout * (p[0] * link.read_in + e[0] * link.read_emit)) as f64;
+                }
+                if link.target != NO_LINK {
+                    let t = &mut incoming[link.target as usize];
+                    for c in 0..CHUNK {
+                        t[c] += out[c];
                     }
                 }
             }
@@ -526,7 +558,19 @@ fn transport_chunk(
             }
         }
     }
+    let fluence = fluence
+        .iter()
+        .flat_map(|row| &row[..width])
+        .copied()
+        .collect();
     (fluence, stats)
+}
+
+/// Up to CHUNK coefficients as one row of lanes, the rest zero.
+fn lanes(values: &[f32]) -> [f32; CHUNK] {
+    let mut row = [0f32; CHUNK];
+    row[..values.len()].copy_from_slice(values);
+    row
 }
 
 /// What the lattice works with: the medium, the SH band count, and T_ri (only to weigh the
@@ -549,9 +593,14 @@ pub fn bake_multiple(
     let dirs = Directions::new(kind);
     let links = build_links(field, layout, medium, dirs, first.bands);
     let n = layout.len();
-    let chunks: Vec<(usize, usize)> = (0..coeffs)
-        .step_by(CHUNK)
-        .map(|c0| (c0, CHUNK.min(coeffs - c0)))
+    // The DC term alone first: its run decides the generation count and runs on one thread, so it
+    // carries no more than it must.
+    let chunks: Vec<(usize, usize)> = std::iter::once((0, 1))
+        .chain(
+            (1..coeffs)
+                .step_by(CHUNK)
+                .map(|c0| (c0, CHUNK.min(coeffs - c0))),
+        )
         .collect();
     // The chunk holding the DC term decides the generation count by energy; the operator is the
     // same for every coefficient, so the other chunks run exactly as many generations.

@@ -4,7 +4,7 @@
 
 use indicatif::HumanBytes as human;
 
-use super::{lattice::LatticeKind, single, BakeSettings, TransferLayout};
+use super::{lattice, lattice::LatticeKind, single, BakeSettings, TransferLayout};
 use crate::error::{Error, Result};
 use crate::volume::DensityField;
 
@@ -58,14 +58,16 @@ impl MemoryEstimate {
         // Single: the point values kept beside the fitted T_ri, and batch results before they
         // are scattered into either (two more copies of T_ri).
         let single = 2 * one + sets;
-        // Lattice: per-chunk results (one more copy); per link a target and four segment values
-        // (20 bytes) and a sweep-order entry (4); four chunk buffers a thread.
+        // Lattice: per-chunk results (one more copy); per link a record in its sweep (24 bytes),
+        // and either the per-cell values the records are gathered from (20 bytes, while the links
+        // are built) or four chunk buffers a thread (while they are swept).
         let d = settings.lattice.directions() as u64;
         // The point values of T_ri stay alive through the lattice (one more copy).
         let lattice = if settings.single_scatter {
             0
         } else {
-            2 * one + n * d * 24 + threads as u64 * 4 * n * 8 * 4
+            let chunks = threads as u64 * 4 * n * lattice::CHUNK as u64 * 4;
+            2 * one + n * d * 24 + (n * d * 20).max(chunks)
         };
         MemoryEstimate {
             density: field_bytes as u64,
