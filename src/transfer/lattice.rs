@@ -72,7 +72,7 @@
 //! the per-generation increments Δₙ of the DC fluence, r = Δₙ/Δₙ₋₁ — is below
 //! [`CONVERGENCE`] of the total.
 
-use glam::{IVec3, Vec3};
+use glam::{IVec3, Vec3, Vec4};
 use rayon::prelude::*;
 
 use super::layout::TransferLayout;
@@ -87,6 +87,10 @@ pub const MAX_GENERATIONS: usize = 5000;
 /// Coefficients transported together: 8 f32 fill a SIMD-friendly run, and the per-chunk buffers
 /// (3 × nodes × 8 floats) keep peak memory bounded whatever the band count.
 pub(crate) const CHUNK: usize = 8;
+/// A node's coefficients of one chunk as SIMD lanes (the unused ones stay zero): the per-link
+/// update is then a few vector instructions, lane by lane the same arithmetic as scalars.
+type Row = [Vec4; CHUNK / 4];
+const ZERO_ROW: Row = [Vec4::ZERO; CHUNK / 4];
 const NO_LINK: u32 = u32::MAX;
 /// Longest segment marched, in sub-steps: a corner link at K = 64 is 64·√3 / 0.5 ≈ 222 steps.
 const MAX_SEGMENT_STEPS: usize = 256;
@@ -480,17 +484,15 @@ fn transport_chunk(
     // The coefficients transported, what the first generation emits, and where it starts:
     // the environment enters at generation 0 and emits nothing; a known emission is generation 1.
     let (c0, width, mut emit, start) = match drive {
-        Drive::Environment { c0, width } => (c0, width, vec![[0f32; CHUNK]; n], 0),
+        Drive::Environment { c0, width } => (c0, width, vec![ZERO_ROW; n], 0),
         Drive::Emission(q) => {
             let emit = q.iter().map(|&e| lanes(&[e])).collect();
             (0, 1, emit, 1)
         }
     };
-    // Every node's coefficients as one row of CHUNK lanes (the unused ones stay zero), so the
-    // per-link update is a fixed-length loop the compiler turns into vector instructions.
-    let mut fluence = vec![[0f32; CHUNK]; n];
-    let mut next = vec![[0f32; CHUNK]; n];
-    let mut incoming = vec![[0f32; CHUNK]; n];
+    let mut fluence = vec![ZERO_ROW; n];
+    let mut next = vec![ZERO_ROW; n];
+    let mut incoming = vec![ZERO_ROW; n];
     let mut stats = LatticeStats {
         energy_single: (0..n).map(|x| first.t_ri[x * coeffs] as f64).sum(),
         ..Default::default()
@@ -502,10 +504,10 @@ fn transport_chunk(
         // (`emit` starts at zero) and is not read out, since T_ri stands for it.
         let inflow = generation == 0;
         let readout = if inflow { 0.0 } else { 1.0 };
-        next.iter_mut().for_each(|v| *v = [0.0; CHUNK]);
+        next.iter_mut().for_each(|v| *v = ZERO_ROW);
         let mut added = 0.0f64;
         for (j, sweep) in links.sweeps.iter().enumerate() {
-            incoming.iter_mut().for_each(|v| *v = [0.0; CHUNK]);
+            incoming.iter_mut().for_each(|v| *v = ZERO_ROW);
             if inflow {
                 // No active cell lies upstream of an entry, so nothing else reaches it on this sweep.
                 let p = lanes(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
@@ -517,8 +519,8 @@ fn transport_chunk(
                 let x = link.node as usize;
                 let (p, e) = (incoming[x], emit[x]);
                 let (fluence, next) = (&mut fluence[x], &mut next[x]);
-                let mut out = [0f32; CHUNK];
-                for c in 0..CHUNK {
+                let mut out = ZERO_ROW;
+                for c in 0..CHUNK / 4 {
                     fluence[c] += readout * (p[c] * link.read_in + e[c] * link.read_emit);
                     // Only entering flux feeds the next generation: the cell's own emission
                     // re-collides inside its self-scattering gain already.
@@ -526,11 +528,11 @@ fn transport_chunk(
                     out[c] = p[c] * link.trans + e[c] * link.emit_out;
                 }
                 if c0 == 0 {
-                    added += (readout * (p[0] * link.read_in + e[0] * link.read_emit)) as f64;
+                    added += (readout * (p[0].x * link.read_in + e[0].x * link.read_emit)) as f64;
                 }
                 if link.target != NO_LINK {
                     let t = &mut incoming[link.target as usize];
-                    for c in 0..CHUNK {
+                    for c in 0..CHUNK / 4 {
                         t[c] += out[c];
                     }
                 }
@@ -560,16 +562,17 @@ fn transport_chunk(
     }
     let fluence = fluence
         .iter()
-        .flat_map(|row| &row[..width])
-        .copied()
+        .flat_map(|row| row.iter().flat_map(|v| v.to_array()).take(width))
         .collect();
     (fluence, stats)
 }
 
 /// Up to CHUNK coefficients as one row of lanes, the rest zero.
-fn lanes(values: &[f32]) -> [f32; CHUNK] {
-    let mut row = [0f32; CHUNK];
-    row[..values.len()].copy_from_slice(values);
+fn lanes(values: &[f32]) -> Row {
+    let mut row = ZERO_ROW;
+    for (c, v) in values.iter().enumerate() {
+        row[c / 4][c % 4] = *v;
+    }
     row
 }
 
