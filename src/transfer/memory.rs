@@ -12,6 +12,11 @@ use crate::volume::DensityField;
 /// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
 const PROCESS_BASELINE: u64 = 24 << 20;
 
+/// The far field's coarser density levels against the density and its accelerators, at most:
+/// measured 0.32 (torus300), 0.35 (cloud_large), 0.39 (block300, tiles), 0.57 (helix600, a thin
+/// tube whose coarse blocks are mostly apron).
+const FAR_FIELD_SHARE: f64 = 0.6;
+
 /// The coarsest transfer resolution divisor K: beyond it a handful of transfer voxels span any
 /// real volume (`--scale` refuses more; a refusal suggests no more).
 pub const MAX_SCALE: i32 = 64;
@@ -56,8 +61,9 @@ impl MemoryEstimate {
         let one = n * c * 4;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         // Single: the point values kept beside the fitted T_ri, and batch results before they
-        // are scattered into either (two more copies of T_ri).
-        let single = 2 * one + sets;
+        // are scattered into either (two more copies of T_ri); the coarser density of the far field.
+        let far = (field_bytes as f64 * FAR_FIELD_SHARE) as u64;
+        let single = 2 * one + sets + far;
         // Lattice: per-chunk results (one more copy); per link a record in its sweep (24 bytes),
         // and either the per-cell values the records are gathered from (20 bytes, while the links
         // are built) or four chunk buffers a thread (while they are swept).

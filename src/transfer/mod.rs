@@ -13,7 +13,8 @@ mod tests;
 
 pub use layout::TransferLayout;
 
-use crate::volume::transmittance::OpticalDepth;
+use crate::volume::mip::DensityMip;
+use crate::volume::transmittance::{FarField, OpticalDepth};
 use crate::volume::{DensityField, SparseGrid};
 
 /// The participating medium ([docs/model.md](../../docs/model.md)): σt = `sigma_t`·ρ per world unit, σs = `albedo`·σt,
@@ -81,6 +82,8 @@ pub struct BakeStats {
     pub lattice_seconds: f64,
     pub transfer_voxels: usize,
     pub transfer_tiles: usize,
+    /// Bytes of the coarser density levels T_ri's rays march far from their origin.
+    pub far_field_bytes: usize,
     pub lattice: Option<lattice::LatticeStats>,
 }
 
@@ -103,18 +106,27 @@ pub fn bake(
     // over the density around them (the footprint means the renderer's values are fitted to).
     let clock = std::time::Instant::now();
     let bar = progress.phase("single", 2 * layout.len() as u64);
-    let depth = OpticalDepth::new(field, medium.sigma_t, true);
-    let single = |origins| {
-        let single = single::SingleSettings {
-            bands: settings.bands,
-            samples: settings.samples,
-            seed: settings.seed,
-            origins,
+    let (point, mut t_ri) = {
+        // The coarser density lives through this phase only.
+        let (near, levels) = single::far_field(density, medium.sigma_t, settings.samples);
+        let mip = DensityMip::build(density, levels);
+        stats.far_field_bytes = mip.memory_bytes();
+        let far = FarField { mip: &mip, near };
+        let depth = OpticalDepth::new(field, medium.sigma_t, true).with_far_field(far);
+        let single = |origins| {
+            let single = single::SingleSettings {
+                bands: settings.bands,
+                samples: settings.samples,
+                seed: settings.seed,
+                origins,
+            };
+            single::bake_single(density, &layout, &depth, single, &bar)
         };
-        single::bake_single(density, &layout, &depth, single, &bar)
+        (
+            single(single::Origins::Node),
+            single(single::Origins::Footprint),
+        )
     };
-    let point = single(single::Origins::Node);
-    let mut t_ri = single(single::Origins::Footprint);
     fit::least_squares(density, &layout, &mut t_ri, settings.bands * settings.bands);
     bar.finish_and_clear();
     stats.single_seconds = clock.elapsed().as_secs_f64();

@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::layout::TransferLayout;
 use crate::light::sh;
-use crate::volume::transmittance::OpticalDepth;
+use crate::volume::transmittance::{FarField, OpticalDepth};
 use crate::volume::SparseGrid;
 
 /// Independently rotated direction sets: enough that neighbouring voxels rarely share one, few
@@ -22,6 +22,44 @@ pub const DIRECTION_SETS: usize = 32;
 /// Voxels projected per matrix product: large enough for sgemm to pay off, small enough to spread
 /// over threads evenly.
 const PROJECTION_BATCH: usize = 64;
+
+/// How many times narrower than a direction's cone a T_ri ray's coarse voxels stay. The coarse
+/// density darkens a wispy cloud a little (e^(−mean τ) < mean e^(−τ) over the cone); measured on
+/// torus300 (σt 0.1) and cloud_large (σt 0.2) against the fine march, 1920×1080-class renders
+/// under the studio map: margin 1 changes the image by 1.7–1.8 % relative RMSE (bias −0.6 %,
+/// T_ri 2.0× faster), margin 2 by 0.6–0.7 % (bias −0.2 %, 1.5× faster).
+const FAR_FIELD_MARGIN: f32 = 2.0;
+
+/// The largest optical depth across one coarse voxel at the density's maximum. A coarse voxel
+/// stands for the mean of what it covers, and e^(−mean τ) is darker than the mean of e^(−τ) by
+/// about half the variance of τ across it: at a dense cloud's edge, a grazing ray either stays
+/// out or is lost, and the mean loses it. Measured: the thick white furnace's surface voxels
+/// (σt 1–2) went from −4.7 % to −6.3 % (cloud) and −8.5 % to −9.9 % (torus) with levels up to
+/// 4–8 optical depths across; capped at one, a medium that thick marches at full resolution.
+const FAR_FIELD_MAX_DEPTH: f32 = 1.0;
+
+/// Fine steps a T_ri ray takes before it moves on to coarser density, and how many coarser levels
+/// it uses, for `samples` directions through `density` at `sigma_t`.
+///
+/// Each direction stands for a cone of solid angle 4π/n, half-angle ≈ 2/√n, whose width 4t/√n
+/// reaches a level-ℓ voxel (2^ℓ fine voxels) at t ≈ 2^ℓ·√n/4; level ℓ starts (2^ℓ − 1)·near
+/// voxels out, so `near` = m·√n/4 keeps the coarse voxels m times narrower than the cone. Levels
+/// go on until they reach across the density's box, or until a voxel could hold more than
+/// [`FAR_FIELD_MAX_DEPTH`].
+pub fn far_field(density: &SparseGrid, sigma_t: f32, samples: usize) -> (u32, usize) {
+    let near = (FAR_FIELD_MARGIN * (samples as f32).sqrt() / 4.0).ceil() as u32;
+    let diagonal = density
+        .active_bbox()
+        .map_or(0.0, |(lo, hi)| (hi - lo + 1).as_vec3().length());
+    let reach = FarField::levels_for(diagonal, near);
+    let max = density.value_stats().map_or(0.0, |s| s.max.max(0.0));
+    let voxel_depth = sigma_t * max * density.transform.voxel_size().min_element() as f32;
+    let thin = match voxel_depth > 0.0 {
+        true => (FAR_FIELD_MAX_DEPTH / voxel_depth).log2().floor().max(0.0) as usize,
+        false => reach,
+    };
+    (near, reach.min(thin))
+}
 
 /// One direction set and its quadrature-weighted basis matrix `weights[d·C + c] = Y_c(ω_d)·4π/N`.
 struct DirectionSet {

@@ -5,6 +5,7 @@ pub(crate) mod bricks;
 pub(crate) mod dda;
 mod field;
 pub mod grid;
+pub(crate) mod mip;
 mod sampler;
 pub mod shadow;
 pub(crate) mod transmittance;

@@ -10,6 +10,7 @@ use std::ops::ControlFlow;
 use crate::math::ray::Ray;
 
 use super::field::DensityField;
+use super::mip::DensityMip;
 
 /// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
 /// under 1 % of the optical depth at one sample per voxel. T_ri marches hundreds of millions of
@@ -22,6 +23,8 @@ pub const MIN_TRANSMITTANCE: f32 = 1e-4;
 /// Integrates σt·ρ along rays.
 pub struct OpticalDepth<'a> {
     field: &'a DensityField,
+    /// Coarser levels for the far part of each ray, and how many fine steps precede them.
+    far: Option<FarField<'a>>,
     sigma_t: f32,
     /// World length of one step.
     step: f32,
@@ -31,6 +34,25 @@ pub struct OpticalDepth<'a> {
     hi: Vec3,
     /// March only the occupied spans (`false`: the whole box, to prove skipping is exact).
     skip_empty: bool,
+}
+
+/// The far field of a ray: `near` steps at the fine level, then `near` steps at each coarser level
+/// in turn (steps 2^ℓ voxels long through level ℓ), the last level to the end of the ray.
+#[derive(Clone, Copy)]
+pub struct FarField<'a> {
+    pub mip: &'a DensityMip,
+    pub near: u32,
+}
+
+impl FarField<'_> {
+    /// Levels a ray of `length` voxels reaches: level ℓ ends (2^(ℓ+1) − 1)·near voxels out.
+    pub fn levels_for(length: f32, near: u32) -> usize {
+        let mut level = 0;
+        while ((1u64 << (level + 1)) - 1) as f32 * (near as f32) < length && level < 30 {
+            level += 1;
+        }
+        level
+    }
 }
 
 impl<'a> OpticalDepth<'a> {
@@ -43,12 +65,26 @@ impl<'a> OpticalDepth<'a> {
             .unwrap_or((Vec3::ONE, Vec3::ZERO));
         OpticalDepth {
             field,
+            far: None,
             sigma_t,
             step: STEP_VOXELS * scale.abs().min_element(),
             inv_scale: scale.recip(),
             lo,
             hi,
             skip_empty,
+        }
+    }
+
+    /// Marches the far part of every ray through `far`'s coarser levels. A coarse level's
+    /// trilinear density reaches up to one of its voxels past the fine box, so the box grows by
+    /// the coarsest voxel: rays keep the tails that carry their share of ∫ρ.
+    pub fn with_far_field(self, far: FarField<'a>) -> Self {
+        let grow = (1u32 << far.mip.len()) as f32;
+        OpticalDepth {
+            far: Some(far),
+            lo: self.lo - grow,
+            hi: self.hi + grow,
+            ..self
         }
     }
 
@@ -75,24 +111,71 @@ impl<'a> OpticalDepth<'a> {
         (-self.integrate(origin, v, exit, -MIN_TRANSMITTANCE.ln())).exp()
     }
 
-    /// Midpoint-rule ∫ σt·ρ over [0, end] (world units), stopping past `cutoff`. Samples sit at
-    /// (k + ½)·step; the last partial step is weighted by its length.
+    /// ∫ σt·ρ over [0, end] (world units), stopping past `cutoff`: at the fine level, or with a
+    /// far field, through ever coarser levels as the ray goes on.
     fn integrate(&self, origin: Vec3, v: Vec3, end: f32, cutoff: f32) -> f32 {
-        if end <= 0.0 {
-            return 0.0;
+        let Some(far) = self.far else {
+            return self.march(self.field, origin, v, (0.0, end), self.step, cutoff, 0.0);
+        };
+        let (mut tau, mut t0) = (0.0, 0.0);
+        for level in 0..=far.mip.len() {
+            let span = self.step * (far.near << level) as f32;
+            let t1 = if level == far.mip.len() {
+                end
+            } else {
+                end.min(t0 + span)
+            };
+            tau = match level {
+                0 => self.march(self.field, origin, v, (t0, t1), self.step, cutoff, tau),
+                _ => {
+                    let scale = (1u32 << level) as f32;
+                    let o = super::mip::to_level(origin, level);
+                    let field = far.mip.level(level);
+                    self.march(
+                        field,
+                        o,
+                        v / scale,
+                        (t0, t1),
+                        self.step * scale,
+                        cutoff,
+                        tau,
+                    )
+                }
+            };
+            if t1 >= end || tau > cutoff {
+                break;
+            }
+            t0 = t1;
         }
-        let step = self.step;
-        let steps = (end / step).ceil() as u32;
-        let mut sampler = self.field.sampler();
-        let mut tau = 0.0f32;
-        // Samples whose positions fall in [t0, t1): spans are half-open, so none is taken twice.
-        let mut march = |t0: f64, t1: f64| {
-            let first = ((t0 / step as f64) - 0.5).ceil().max(0.0) as u32;
-            let last = (((t1 / step as f64) - 0.5).ceil().max(0.0) as u32).min(steps);
+        tau
+    }
+
+    /// Midpoint-rule ∫ σt·ρ of `field` over `range` (world units) added to `tau`, stopping past
+    /// `cutoff`. Samples sit at t0 + (k + ½)·step; the last partial step is weighted by its length.
+    #[allow(clippy::too_many_arguments)]
+    fn march(
+        &self,
+        field: &DensityField,
+        origin: Vec3,
+        v: Vec3,
+        (t0, end): (f32, f32),
+        step: f32,
+        cutoff: f32,
+        mut tau: f32,
+    ) -> f32 {
+        if end <= t0 {
+            return tau;
+        }
+        let steps = ((end - t0) / step).ceil() as u32;
+        let mut sampler = field.sampler();
+        // Samples whose positions fall in [a, b): spans are half-open, so none is taken twice.
+        let mut run = |a: f64, b: f64| {
+            let first = (((a - t0 as f64) / step as f64) - 0.5).ceil().max(0.0) as u32;
+            let last = ((((b - t0 as f64) / step as f64) - 0.5).ceil().max(0.0) as u32).min(steps);
             for k in first..last {
-                let p = origin + v * ((k as f32 + 0.5) * step);
+                let p = origin + v * (t0 + (k as f32 + 0.5) * step);
                 let len = if k + 1 == steps {
-                    end - k as f32 * step
+                    end - t0 - k as f32 * step
                 } else {
                     step
                 };
@@ -104,14 +187,14 @@ impl<'a> OpticalDepth<'a> {
             ControlFlow::Continue(())
         };
         // The last, partial step's sample lies past `end`: walk to the end of that whole step.
-        let reach = steps as f64 * step as f64;
-        if self.skip_empty {
+        let reach = t0 as f64 + steps as f64 * step as f64;
+        if self.skip_empty && std::ptr::eq(field, self.field) {
             let ray = Ray::new(origin.as_dvec3(), v.as_dvec3());
-            self.field
+            field
                 .occupancy
-                .visit_spans(&ray, 0.0, reach, |span| march(span.t0, span.t1));
+                .visit_spans(&ray, t0 as f64, reach, |span| run(span.t0, span.t1));
         } else {
-            let _ = march(0.0, reach);
+            let _ = run(t0 as f64, reach);
         }
         tau
     }
@@ -165,6 +248,50 @@ mod tests {
             let (x, y) = (skip.transmittance(o, dir), plain.transmittance(o, dir));
             assert_eq!(x, y, "ray {i}");
         }
+    }
+
+    #[test]
+    fn the_far_field_keeps_the_depth_of_a_uniform_slab() {
+        // The slab seen from 68 voxels away: the ray crosses it at levels 3 and 4 (near = 4:
+        // levels end 4, 12, 28, 60, 124, 252 voxels out), whose box means keep ∫ρ = 128.
+        let field = DensityField::new(slab());
+        let mip = DensityMip::build(&field.grid, FarField::levels_for(300.0, 4));
+        assert_eq!(mip.len(), 6);
+        let far = FarField { mip: &mip, near: 4 };
+        let d = OpticalDepth::new(&field, 0.01, true).with_far_field(far);
+        let tau = depth_to_infinity(&d, Vec3::new(60.0, 64.0, 64.0), Vec3::X);
+        assert!((tau - 1.28).abs() < 0.01, "{tau}");
+    }
+
+    #[test]
+    fn the_far_field_starts_after_near_steps() {
+        // Within `near` steps of its origin a ray is marched at the fine level, bit for bit.
+        let field = DensityField::new(slab());
+        let mip = DensityMip::build(&field.grid, 3);
+        let fine = OpticalDepth::new(&field, 0.01, true);
+        let far = fine.with_far_field(FarField {
+            mip: &mip,
+            near: 40,
+        });
+        let fine = OpticalDepth::new(&field, 0.01, true);
+        let (o, dir) = (Vec3::new(200.0, 64.0, 64.0), Vec3::new(0.0, 0.6, 0.8));
+        let (exit, v) = fine.clip(o, dir);
+        assert!(exit > 40.0);
+        assert_eq!(
+            fine.integrate(o, v, 39.5, f32::INFINITY),
+            far.integrate(o, v, 39.5, f32::INFINITY)
+        );
+        assert_ne!(
+            fine.integrate(o, v, exit, f32::INFINITY),
+            far.integrate(o, v, exit, f32::INFINITY)
+        );
+    }
+
+    #[test]
+    fn far_field_levels_cover_the_ray() {
+        assert_eq!(FarField::levels_for(4.0, 4), 0);
+        assert_eq!(FarField::levels_for(12.0, 4), 1);
+        assert_eq!(FarField::levels_for(12.5, 4), 2);
     }
 
     #[test]
