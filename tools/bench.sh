@@ -13,6 +13,9 @@
 #               volume (must be 0) and of a slowly moving one
 #   tiles       issue 15: billions of voxels in tiles (fixtures/huge_*.vdb) — info, bake --dry-run, a
 #               bake's refusal and render --dry-run, wall and peak RSS (target: <= 2 s and <= 200 MB)
+#   scale       issue 15: production-size clouds (cloud_quarter; cloud_half with SCALE_HALF=1) — info vs
+#               vdb_print -l, bake σt 0.2 against an earlier build (as versus), phases, far field, the
+#               dry-run estimate against the peak, 1920×1080 renders of both caches compared
 #   sh          SH projection: sh_project (cargo bench) and a 2048×1024 EXR through `vscatter env`
 #   sh_project  only benches/sh_project.rs (4096×2048 map, 10 and 20 bands)
 #   versus      this binary against an earlier one (BENCH_OLD=path, or BENCH_OLD_REV=commit, default
@@ -362,7 +365,51 @@ section_tiles() {
     done
 }
 
-SECTIONS=(bake render sun batch tiles sh)
+# ---------------------------------------------------------------------------------------------
+# scale (issue 15)
+# ---------------------------------------------------------------------------------------------
+# Production-size clouds: `info` against `vdb_print -l`; the bake at σt 0.2 against an earlier
+# build's (old_vscatter: BENCH_OLD or BENCH_OLD_REV), its phases, the far field's bytes and the
+# estimate against the peak; the 1920×1080 render of each cache, and the two renders compared.
+# cloud_quarter always; cloud_half too with SCALE_HALF=1 (its bake takes the better part of an hour).
+section_scale() {
+    need_tools; build_vscatter; old_vscatter
+    command -v vdb_print >/dev/null || apt_install libopenvdb-tools
+    local names=(cloud_quarter) o="$BENCH_OUT/scale"
+    [ "${SCALE_HALF:-0}" = 1 ] && names+=(cloud_half)
+    tools/make_bench_inputs.sh "$BENCH_IN" --only "$(IFS=,; echo "${names[*]}")" >"$LOG/inputs_scale.log" 2>&1 \
+        || { cat "$LOG/inputs_scale.log" >&2; exit 1; }
+    mkdir -p "$o"
+    lscpu | awk -F': +' '/Model name/{print "cpu: " $2}'
+    printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" input run wall_s rss_MB single_s lattice_s far_field_MB estimate_MB load
+    local name f b
+    for name in "${names[@]}"; do
+        f="$BENCH_IN/$name.vdb"
+        run_timed "scale_info_$name" "$VS" info "$f"
+        printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "vscatter info" "$WALL" "$RSS_MB" - - - - "$LOAD"
+        run_timed "scale_vdb_print_$name" vdb_print -l "$f"
+        printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "vdb_print -l" "$WALL" "$RSS_MB" - - - - "$LOAD"
+        local estimate
+        estimate=$("$VS" bake "$f" -o "$o/x.vtc" --sigma-t 0.2 --dry-run 2>&1 | grep -o 'estimated peak memory [0-9.]* [KMG]iB' \
+            | awk '{ v = $4; u = $5; printf "%.1f", v * (u == "GiB" ? 1024 : (u == "KiB" ? 1 / 1024 : 1)) }')
+        declare -A BW
+        for b in old new; do
+            local bin="$VS"; [ "$b" = old ] && bin="$OLD"
+            run_timed "scale_bake_${b}_$name" "$bin" bake "$f" -o "$o/${name}_$b.vtc" --sigma-t 0.2 --quiet --stats
+            BW[$b]=$WALL
+            local n="scale_bake_${b}_$name"
+            printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "bake σt 0.2 ($b)" "$WALL" "$RSS_MB" \
+                "$(j $n single_seconds %.1f)" "$(j $n lattice_seconds %.1f)" "$(mib "$(j $n far_field_bytes)")" \
+                "$([ $b = new ] && echo "${estimate:--}" || echo -)" "$LOAD"
+            run_timed "scale_render_${b}_$name" "$VS" render "$o/${name}_$b.vtc" -o "$o/${name}_$b.exr" --res 1920x1080 --quiet
+            printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "render 1920x1080 ($b)" "$WALL" "$RSS_MB" - - - - "$LOAD"
+        done
+        echo "   $name bake new/old: $(ratio "${BW[new]}" "${BW[old]}"); new render against old: $("$VS" compare "$o/${name}_new.exr" "$o/${name}_old.exr" | head -1)"
+        ls -l "$f" "$o/${name}_new.vtc" | awk '{ printf "   %s: %.1f MB\n", $NF, $5 / 1e6 }'
+    done
+}
+
+SECTIONS=(bake render sun batch tiles scale sh)
 
 run=("$@")
 { [ ${#run[@]} -eq 0 ] || [ "${run[0]}" = all ]; } && run=("${SECTIONS[@]}")
