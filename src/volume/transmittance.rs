@@ -188,7 +188,10 @@ impl<'a> OpticalDepth<'a> {
         };
         // The last, partial step's sample lies past `end`: walk to the end of that whole step.
         let reach = t0 as f64 + steps as f64 * step as f64;
-        if self.skip_empty && std::ptr::eq(field, self.field) {
+        // With a far field every range is a few dozen steps at most, and walking the occupied
+        // spans cost more than the empty samples it saves (torus300 and cloud_large: T_ri 8 % and
+        // 16 % slower with the walk); samples outside spans are zero either way.
+        if self.skip_empty && self.far.is_none() {
             let ray = Ray::new(origin.as_dvec3(), v.as_dvec3());
             field
                 .occupancy
