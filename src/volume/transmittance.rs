@@ -78,7 +78,11 @@ impl<'a> OpticalDepth<'a> {
     /// Marches the far part of every ray through `far`'s coarser levels. A coarse level's
     /// trilinear density reaches up to one of its voxels past the fine box, so the box grows by
     /// the coarsest voxel: rays keep the tails that carry their share of ∫ρ.
+    /// Without coarser levels it is the fine march as it was.
     pub fn with_far_field(self, far: FarField<'a>) -> Self {
+        if far.mip.len() == 0 {
+            return self;
+        }
         let grow = (1u32 << far.mip.len()) as f32;
         OpticalDepth {
             far: Some(far),
@@ -288,6 +292,25 @@ mod tests {
             fine.integrate(o, v, exit, f32::INFINITY),
             far.integrate(o, v, exit, f32::INFINITY)
         );
+    }
+
+    #[test]
+    fn a_far_field_without_levels_is_the_fine_march() {
+        // A medium too thick for any level (a bake at σt 1) must bake exactly as without one.
+        let field = DensityField::new(slab());
+        let mip = DensityMip::build(&field.grid, 0);
+        let plain = OpticalDepth::new(&field, 0.003, true);
+        let far = OpticalDepth::new(&field, 0.003, true).with_far_field(FarField {
+            mip: &mip,
+            near: 12,
+        });
+        for i in 0..100 {
+            let a = i as f32 * 0.61;
+            let dir = Vec3::new(a.cos(), (a * 1.7).sin() * 0.5, a.sin()).normalize();
+            let o = Vec3::new(130.0 + i as f32, 60.0, 66.0);
+            let (x, y) = (plain.transmittance(o, dir), far.transmittance(o, dir));
+            assert_eq!(x.to_bits(), y.to_bits(), "ray {i}");
+        }
     }
 
     #[test]
