@@ -519,16 +519,17 @@ fn transport_chunk(
                 let x = link.node as usize;
                 let (p, e) = (incoming[x], emit[x]);
                 let (fluence, next) = (&mut fluence[x], &mut next[x]);
-                let mut out = ZERO_ROW;
+                let (mut read, mut out) = (ZERO_ROW, ZERO_ROW);
                 for c in 0..CHUNK / 4 {
-                    fluence[c] += readout * (p[c] * link.read_in + e[c] * link.read_emit);
+                    read[c] = readout * (p[c] * link.read_in + e[c] * link.read_emit);
+                    fluence[c] += read[c];
                     // Only entering flux feeds the next generation: the cell's own emission
                     // re-collides inside its self-scattering gain already.
                     next[c] += albedo * p[c] * (1.0 - link.trans);
                     out[c] = p[c] * link.trans + e[c] * link.emit_out;
                 }
                 if c0 == 0 {
-                    added += (readout * (p[0].x * link.read_in + e[0].x * link.read_emit)) as f64;
+                    added += read[0].x as f64;
                 }
                 if link.target != NO_LINK {
                     let t = &mut incoming[link.target as usize];
