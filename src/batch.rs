@@ -146,7 +146,7 @@ impl Batch<'_> {
             }
             r.read_seconds = clock.elapsed().as_secs_f64();
             r.warnings = scene.warnings(Some(self.config.settings.scale));
-            let plan = scene.plan(&self.config.settings);
+            let plan = scene.plan(self.config);
             plan.check_budget(&scene.field, &self.config.settings, Some(budget.limit))?;
             r.estimated_bytes = plan.estimate.total();
             r.transfer_voxels = plan.transfer_voxels;

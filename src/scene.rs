@@ -114,8 +114,8 @@ impl Scene {
     }
 
     /// What baking this scene with `settings` will make and need, before it runs.
-    pub fn plan(&self, settings: &BakeSettings) -> BakePlan {
-        BakePlan::new(&self.field, settings)
+    pub fn plan(&self, config: &BakeConfig) -> BakePlan {
+        BakePlan::new(&self.field, &config.settings, config.medium.sigma_t)
     }
 
     /// Bakes the transfer (check [`BakePlan::check_budget`] first: a bake allocates what its

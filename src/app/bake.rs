@@ -63,7 +63,7 @@ pub fn prepare_bake(
     dry_run: bool,
     global: &GlobalArgs,
 ) -> Result<Option<BakeStats>> {
-    let plan = scene.plan(&config.settings);
+    let plan = scene.plan(config);
     if dry_run {
         warn(&scene.warnings(Some(config.settings.scale)));
         println!("{}", plan.describe());

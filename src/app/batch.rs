@@ -146,7 +146,7 @@ fn dry_run(
             continue;
         }
         let line = Scene::open(input, config)
-            .map(|scene| scene.plan(&config.settings).describe())
+            .map(|scene| scene.plan(config).describe())
             .unwrap_or_else(|e| format!("fails: {e}"));
         println!("{} -> {}: {line}", input.display(), output.display());
     }

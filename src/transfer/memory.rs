@@ -55,6 +55,7 @@ impl MemoryEstimate {
         layout_bytes: usize,
         voxels: usize,
         settings: &BakeSettings,
+        far_field: bool,
         threads: usize,
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
@@ -62,7 +63,10 @@ impl MemoryEstimate {
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         // Single: the point values kept beside the fitted T_ri, and batch results before they
         // are scattered into either (two more copies of T_ri); the coarser density of the far field.
-        let far = (field_bytes as f64 * FAR_FIELD_SHARE) as u64;
+        let far = match far_field {
+            true => (field_bytes as f64 * FAR_FIELD_SHARE) as u64,
+            false => 0,
+        };
         let single = 2 * one + sets + far;
         // Lattice: per-chunk results (one more copy); per link a record in its sweep (24 bytes),
         // and either the per-cell values the records are gathered from (20 bytes, while the links
@@ -104,10 +108,13 @@ pub struct BakePlan {
     pub estimate: MemoryEstimate,
     /// The counts are estimated ([`MAX_LAID_OUT_VOXELS`]), not counted.
     pub estimated: bool,
+    /// T_ri's rays will read coarser levels of the density ([`single::far_field`]).
+    pub far_field: bool,
 }
 
 impl BakePlan {
-    pub fn new(field: &DensityField, settings: &BakeSettings) -> BakePlan {
+    pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
+        let far = single::far_field(&field.grid, sigma_t, settings.samples).1 > 0;
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
@@ -115,16 +122,18 @@ impl BakePlan {
             return BakePlan {
                 transfer_voxels: n,
                 transfer_tiles: n / 64,
-                estimate: estimate(field, layout as usize, n, settings),
+                estimate: estimate(field, layout as usize, n, settings, far),
                 estimated: true,
+                far_field: far,
             };
         }
         let layout = TransferLayout::build(&field.grid, settings.scale);
         BakePlan {
             transfer_voxels: layout.len(),
             transfer_tiles: layout.tile_count(),
-            estimate: estimate(field, layout.memory_bytes(), layout.len(), settings),
+            estimate: estimate(field, layout.memory_bytes(), layout.len(), settings, far),
             estimated: false,
+            far_field: far,
         }
     }
 
@@ -167,14 +176,15 @@ impl BakePlan {
             ..s
         };
         let need = |settings: &BakeSettings, voxels: usize| {
-            estimate(field, layout_bytes, voxels, settings).total()
+            estimate(field, layout_bytes, voxels, settings, self.far_field).total()
         };
         // The finest coarser K that fits, from the estimated count at each K.
         let coarser = (s.scale + 1..=MAX_SCALE).find_map(|k| {
             let about = TransferLayout::estimate_len(&field.grid, k);
             let voxels = usize::try_from(about).unwrap_or(usize::MAX);
             let bytes = (about.saturating_mul(LAYOUT_BYTES_PER_VOXEL)) as usize;
-            let total = estimate(field, bytes, voxels, &BakeSettings { scale: k, ..s }).total();
+            let at_k = BakeSettings { scale: k, ..s };
+            let total = estimate(field, bytes, voxels, &at_k, self.far_field).total();
             (total <= limit).then_some((k, total))
         });
         let coarser = match coarser {
@@ -212,12 +222,14 @@ fn estimate(
     layout_bytes: usize,
     voxels: usize,
     settings: &BakeSettings,
+    far_field: bool,
 ) -> MemoryEstimate {
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.accelerator_bytes(),
         layout_bytes,
         voxels,
         settings,
+        far_field,
         rayon::current_num_threads(),
     )
 }
