@@ -17,6 +17,7 @@ use crate::render::sunlight::SunLight;
 use crate::render::{self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats};
 use crate::transfer::cache::{self, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
+use crate::transfer::packing::Precision;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer};
 use crate::volume::{load_density, DensityField};
 
@@ -27,8 +28,8 @@ pub struct BakeConfig {
     pub grid: Option<String>,
     pub medium: Medium,
     pub settings: BakeSettings,
-    /// Store coefficients as f16.
-    pub half: bool,
+    /// How the cache stores the coefficients (and the density).
+    pub precision: Precision,
     /// Refuse bakes estimated above this many bytes (`None`: a share of available memory).
     pub max_memory: Option<u64>,
 }
@@ -143,7 +144,7 @@ impl Scene {
             transfer,
             &config.settings,
             origin.clone(),
-            config.half,
+            config.precision,
         );
         cache::write(path, &header, grid, transfer)
     }
@@ -332,7 +333,7 @@ fn baked_from(h: &Header, source: &Source, config: &BakeConfig) -> bool {
         && h.settings().as_ref() == Some(&config.settings)
         && h.sigma_t == config.medium.sigma_t
         && h.albedo == config.medium.albedo
-        && (h.coefficients == "f16") == config.half
+        && h.coefficients == config.precision
 }
 
 /// How to path-trace.

@@ -14,6 +14,7 @@ use vscatter::render::CameraSpec;
 use vscatter::scene::BakeConfig;
 use vscatter::sequence::{FrameRange, Shard};
 use vscatter::transfer::memory::MAX_SCALE;
+use vscatter::transfer::packing::Precision;
 use vscatter::transfer::{lattice::LatticeKind, BakeSettings, Medium};
 
 /// Multiple-scattering relighting of OpenVDB fog volumes.
@@ -153,8 +154,12 @@ pub struct BakeArgs {
     /// Seed of the direction-set rotations (and of path tracing).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub seed: u64,
-    /// Store coefficients as 16-bit floats (half the cache size).
-    #[arg(long)]
+    /// How the cache stores the transfer: f32 exactly; f16 (the density too) at half the size;
+    /// q8 (8 bits per coefficient, scaled per band) at a third (docs/cache-format.md).
+    #[arg(long, value_enum, value_name = "P", default_value_t = Precision::F32)]
+    pub cache_precision: Precision,
+    /// Same as `--cache-precision f16`.
+    #[arg(long, conflicts_with = "cache_precision")]
     pub cache_half: bool,
     /// Print the memory estimate and stop.
     #[arg(long)]
@@ -204,7 +209,10 @@ impl BakeArgs {
                 single_scatter: self.single_scatter,
                 seed: self.seed,
             },
-            half: self.cache_half,
+            precision: match self.cache_half {
+                true => Precision::F16,
+                false => self.cache_precision,
+            },
             max_memory,
         })
     }

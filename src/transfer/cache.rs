@@ -1,20 +1,23 @@
 //! The `.vtc` transfer cache: self-contained (medium, bake settings, source, transform, the sparse
-//! density, and the transfer as T_ri and F_ms), checksummed, written atomically.
+//! density, and the transfer as T_ri and F_ms), compressed, checksummed, written atomically.
 //!
 //! Layout, little-endian:
 //! ```text
 //! magic "VSCTRCACHE\0\0"  12 bytes
 //! u32   format version
 //! u64   header length H;  H bytes of JSON: everything descriptive, and the section counts
-//! density: background f32; per leaf: origin 3×i32, mask 8×u64, 512×f32;
-//!          per tile level (8³, 128³, 4096³): per tile origin 3×i32, value f32
-//! layout:  per transfer voxel 3×i32, in slot order
-//! t_ri, f_ms: voxels × bands² coefficients, f32 or f16 (`coefficients` in the header)
+//! f32   density background
+//! six sections, each a u64 length and a zstd frame of ([`packing`]):
+//!   leaves:  per leaf origin 3×i32, mask 8×u64
+//!   values:  the active values of every leaf in leaf and voxel order, f32 or f16 (`density`)
+//!   tiles:   per tile level (8³, 128³, 4096³): per tile origin 3×i32, value f32
+//!   layout:  per transfer voxel 3×i32, in slot order
+//!   t_ri, f_ms: voxels × bands² coefficients at the header's `coefficients` precision
 //! u64   xxh3-64 of every byte before it
 //! ```
-//! The reader derives every section's size from the header's counts with checked arithmetic and
-//! requires the total to equal the file's length before it allocates anything, then verifies the
-//! checksum, so a truncated or corrupted cache is a clear error.
+//! The reader checks the checksum before it decodes anything, takes each section's length from
+//! the file and its contents' sizes from the header's counts, and decompresses no more than a
+//! section really holds, so a truncated, padded or corrupted cache is a clear error.
 
 use std::io::Write;
 use std::path::Path;
@@ -23,6 +26,7 @@ use glam::{DVec3, IVec3};
 use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
+use super::packing::{self, Precision, SectionReader, SectionWriter};
 use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout};
 use crate::error::{Error, Result};
 use crate::volume::grid::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
@@ -32,12 +36,16 @@ const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// message to re-bake. 2: T_ri holds values fitted for trilinear interpolation (`transfer::fit`),
 /// not point values, and F_ms what the fit took from them. 3: the source is identified by size,
 /// modification time in nanoseconds and a hash of its first bytes; the grid asked for and the
-/// framing box are recorded.
-pub const VERSION: u32 = 3;
+/// framing box are recorded. 4: compressed sections, active density values only, and the q8
+/// precision.
+pub const VERSION: u32 = 4;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
-const LEAF_BYTES: u64 = 12 + 64 + 4 * LEAF_VOXELS as u64;
-const TILE_BYTES: u64 = 16;
+/// Bytes of a leaf's origin and mask in the leaves section, and of a tile in the tiles section.
+const LEAF_BYTES: usize = 12 + 64;
+const TILE_BYTES: usize = 16;
+/// Sections after the background: leaves, values, tiles, layout, t_ri, f_ms.
+const SECTIONS: usize = 6;
 
 /// Bytes at the start of a source file hashed into its identity: a VDB's header and grid
 /// descriptors, where a re-export differs even when size and time do not.
@@ -106,8 +114,11 @@ pub struct Header {
     /// Active tiles at the 8³, 128³ and 4096³ levels.
     pub tiles: [u64; 3],
     pub transfer_voxels: u64,
-    /// `f32` or `f16`.
-    pub coefficients: String,
+    /// How the coefficients are stored.
+    pub coefficients: Precision,
+    /// How the leaves' density values are stored: f32, or f16 when the precision allows it and
+    /// every value fits.
+    pub density: Precision,
 }
 
 /// A cache's contents.
@@ -122,7 +133,7 @@ impl Header {
     pub fn describe(&self, path: &Path, size: u64) -> String {
         let h = self;
         format!(
-        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients\n",
+        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients, {} density\n",
         path.display(),
         VERSION,
         indicatif::HumanBytes(size),
@@ -142,31 +153,9 @@ impl Header {
         h.leaves,
         h.tiles,
         h.transfer_voxels,
-        h.coefficients,
+        h.coefficients.name(),
+        h.density.name(),
     )
-    }
-
-    fn coefficient_bytes(&self) -> Option<u64> {
-        match self.coefficients.as_str() {
-            "f32" => Some(4),
-            "f16" => Some(2),
-            _ => None,
-        }
-    }
-
-    /// Bytes of everything after the header and before the checksum.
-    fn body_len(&self) -> Option<u64> {
-        let coeffs = (self.bands as u64).checked_mul(self.bands as u64)?;
-        let tiles: u64 = self.tiles.iter().try_fold(0u64, |a, t| a.checked_add(*t))?;
-        let transfer = self
-            .transfer_voxels
-            .checked_mul(coeffs)?
-            .checked_mul(self.coefficient_bytes()?)?
-            .checked_mul(2)?;
-        4u64.checked_add(self.leaves.checked_mul(LEAF_BYTES)?)?
-            .checked_add(tiles.checked_mul(TILE_BYTES)?)?
-            .checked_add(self.transfer_voxels.checked_mul(12)?)?
-            .checked_add(transfer)
     }
 
     pub fn settings(&self) -> Option<BakeSettings> {
@@ -205,25 +194,20 @@ impl<W: Write> Write for Hashing<W> {
     }
 }
 
-fn put_ivec(w: &mut impl Write, v: IVec3) -> std::io::Result<()> {
-    v.to_array()
-        .iter()
-        .try_for_each(|c| w.write_all(&c.to_le_bytes()))
+/// Writes one section: its compressed length, then the frame `fill` produced.
+fn put_section(
+    w: &mut impl Write,
+    fill: impl FnOnce(&mut SectionWriter) -> std::io::Result<()>,
+) -> std::io::Result<()> {
+    let mut section = SectionWriter::new()?;
+    fill(&mut section)?;
+    let frame = section.finish()?;
+    w.write_all(&(frame.len() as u64).to_le_bytes())?;
+    w.write_all(&frame)
 }
 
-fn put_coefficients(w: &mut impl Write, values: &[f32], half: bool) -> std::io::Result<()> {
-    for chunk in values.chunks(4096) {
-        let bytes: Vec<u8> = if half {
-            chunk
-                .iter()
-                .flat_map(|v| half::f16::from_f32(*v).to_le_bytes())
-                .collect()
-        } else {
-            chunk.iter().flat_map(|v| v.to_le_bytes()).collect()
-        };
-        w.write_all(&bytes)?;
-    }
-    Ok(())
+fn ivec_bytes(v: IVec3) -> impl Iterator<Item = u8> {
+    v.to_array().into_iter().flat_map(i32::to_le_bytes)
 }
 
 /// Where a bake's density came from: the file, the grid read, and the grid asked for.
@@ -240,7 +224,7 @@ pub fn header(
     transfer: &Transfer,
     settings: &BakeSettings,
     origin: Origin,
-    half: bool,
+    precision: Precision,
 ) -> Header {
     let t = density.transform;
     Header {
@@ -262,7 +246,17 @@ pub fn header(
         leaves: density.leaf_count() as u64,
         tiles: TileLevel::ALL.map(|l| density.tiles(l).count() as u64),
         transfer_voxels: transfer.layout.len() as u64,
-        coefficients: if half { "f16" } else { "f32" }.into(),
+        coefficients: precision,
+        density: match precision.density_f16()
+            && packing::fits_f16(
+                density
+                    .leaves()
+                    .iter()
+                    .flat_map(|l| active_values(l.mask, &l.values)),
+            ) {
+            true => Precision::F16,
+            false => Precision::F32,
+        },
     }
 }
 
@@ -274,10 +268,10 @@ pub fn write(
     transfer: &Transfer,
 ) -> Result<()> {
     let json = serde_json::to_vec(header).map_err(|e| Error::Runtime(e.to_string()))?;
-    let half = header.coefficients == "f16";
+    let coeffs = transfer.coeffs();
     crate::io::atomic::write_atomic(path, |file| {
         let mut w = Hashing {
-            inner: file,
+            inner: std::io::BufWriter::new(file),
             hash: Xxh3::new(),
         };
         w.write_all(MAGIC)?;
@@ -285,35 +279,63 @@ pub fn write(
         w.write_all(&(json.len() as u64).to_le_bytes())?;
         w.write_all(&json)?;
         w.write_all(&density.background.to_le_bytes())?;
-        for leaf in density.leaves() {
-            put_ivec(&mut w, leaf.origin)?;
-            leaf.mask
-                .iter()
-                .try_for_each(|m| w.write_all(&m.to_le_bytes()))?;
-            let bytes: Vec<u8> = leaf.values.iter().flat_map(|v| v.to_le_bytes()).collect();
-            w.write_all(&bytes)?;
-        }
-        for level in TileLevel::ALL {
-            // Sorted so that two bakes of one input give identical files whatever the map order.
-            let mut tiles: Vec<(IVec3, f32)> = density.tiles(level).collect();
-            tiles.sort_by_key(|(o, _)| o.to_array());
-            for (origin, value) in tiles {
-                put_ivec(&mut w, origin)?;
-                w.write_all(&value.to_le_bytes())?;
+        let leaves = density.leaves();
+        put_section(&mut w, |s| {
+            leaves.iter().try_for_each(|leaf| {
+                let bytes: Vec<u8> = ivec_bytes(leaf.origin)
+                    .chain(leaf.mask.iter().flat_map(|m| m.to_le_bytes()))
+                    .collect();
+                s.bytes(&bytes)
+            })
+        })?;
+        put_section(&mut w, |s| {
+            let values = leaves.iter().flat_map(|l| active_values(l.mask, &l.values));
+            match header.density {
+                Precision::F16 => s.shuffled(values.map(|v| half::f16::from_f32(v).to_le_bytes())),
+                _ => s.shuffled(values.map(f32::to_le_bytes)),
             }
+        })?;
+        put_section(&mut w, |s| {
+            TileLevel::ALL.into_iter().try_for_each(|level| {
+                // Sorted so that two bakes of one input give identical files whatever the map order.
+                let mut tiles: Vec<(IVec3, f32)> = density.tiles(level).collect();
+                tiles.sort_by_key(|(o, _)| o.to_array());
+                let bytes: Vec<u8> = tiles
+                    .into_iter()
+                    .flat_map(|(origin, value)| ivec_bytes(origin).chain(value.to_le_bytes()))
+                    .collect();
+                s.bytes(&bytes)
+            })
+        })?;
+        put_section(&mut w, |s| {
+            let bytes: Vec<u8> = transfer
+                .layout
+                .voxels()
+                .iter()
+                .flat_map(|v| ivec_bytes(*v))
+                .collect();
+            s.bytes(&bytes)
+        })?;
+        for values in [&transfer.t_ri, &transfer.f_ms] {
+            put_section(&mut w, |s| {
+                packing::put_coefficients(s, values, coeffs, header.coefficients)
+            })?;
         }
-        for v in transfer.layout.voxels() {
-            put_ivec(&mut w, *v)?;
-        }
-        put_coefficients(&mut w, &transfer.t_ri, half)?;
-        put_coefficients(&mut w, &transfer.f_ms, half)?;
         let sum = w.hash.digest();
-        w.inner.write_all(&sum.to_le_bytes())
+        w.inner.write_all(&sum.to_le_bytes())?;
+        w.inner.flush()
     })
 }
 
-/// A bounds-checked reader over the cache body (sizes were validated up front, so a short read
-/// here means the header lied about a count — still an error, never a panic).
+/// The values of a leaf's active voxels, in voxel order: all a cache stores of a leaf's values
+/// (the inactive ones read back as the background).
+fn active_values(mask: [u64; 8], values: &[f32; LEAF_VOXELS]) -> impl Iterator<Item = f32> + '_ {
+    (0..LEAF_VOXELS)
+        .filter(move |i| mask[i >> 6] >> (i & 63) & 1 == 1)
+        .map(move |i| values[i])
+}
+
+/// The cache body after the header, section by section.
 struct Body<'a> {
     bytes: &'a [u8],
 }
@@ -321,42 +343,49 @@ struct Body<'a> {
 impl<'a> Body<'a> {
     fn take(&mut self, n: usize) -> std::result::Result<&'a [u8], String> {
         if n > self.bytes.len() {
-            return Err("cache sections are shorter than the header says".into());
+            return Err("cache sections are shorter than their lengths say".into());
         }
         let (a, b) = self.bytes.split_at(n);
         self.bytes = b;
         Ok(a)
     }
 
-    fn u32s<const N: usize>(&mut self) -> std::result::Result<[u32; N], String> {
-        let b = self.take(4 * N)?;
-        Ok(std::array::from_fn(|i| {
-            u32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
-        }))
-    }
-
-    fn ivec(&mut self) -> std::result::Result<IVec3, String> {
-        let [x, y, z] = self.u32s::<3>()?;
-        Ok(IVec3::new(x as i32, y as i32, z as i32))
-    }
-
     fn f32(&mut self) -> std::result::Result<f32, String> {
-        Ok(f32::from_bits(self.u32s::<1>()?[0]))
+        let b = self.take(4)?;
+        Ok(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
 
-    fn coefficients(&mut self, n: usize, half: bool) -> std::result::Result<Vec<f32>, String> {
-        if half {
-            let b = self.take(2 * n)?;
-            Ok(b.chunks_exact(2)
-                .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
-                .collect())
-        } else {
-            let b = self.take(4 * n)?;
-            Ok(b.chunks_exact(4)
-                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect())
-        }
+    /// The next section, decoded by `parse`, which must read all of it.
+    fn section<T>(
+        &mut self,
+        parse: impl FnOnce(&mut SectionReader) -> std::result::Result<T, String>,
+    ) -> std::result::Result<T, String> {
+        let mut len = [0u8; 8];
+        len.copy_from_slice(self.take(8)?);
+        let len = usize::try_from(u64::from_le_bytes(len))
+            .map_err(|_| "a section's length is impossible".to_string())?;
+        let mut reader = SectionReader::new(self.take(len)?)?;
+        let value = parse(&mut reader)?;
+        reader.finish()?;
+        Ok(value)
     }
+}
+
+/// Little-endian i32 triples from `bytes` (a multiple of 12 long).
+fn ivecs(bytes: &[u8]) -> impl Iterator<Item = IVec3> + '_ {
+    bytes.chunks_exact(12).map(|b| {
+        let c = |i: usize| i32::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
+        IVec3::new(c(0), c(4), c(8))
+    })
+}
+
+/// `count` records of `size` bytes from a section, with the count checked against overflow.
+fn records(r: &mut SectionReader, count: u64, size: usize) -> std::result::Result<Vec<u8>, String> {
+    let n = usize::try_from(count)
+        .ok()
+        .and_then(|c| c.checked_mul(size))
+        .ok_or("the header's counts are impossible")?;
+    r.bytes(n)
 }
 
 /// Whether `path` starts with the cache magic (a short or unreadable file is not a cache here; the
@@ -411,16 +440,11 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
     let end = fixed + hlen as usize;
     let header: Header =
         serde_json::from_slice(&data[fixed..end]).map_err(|e| format!("damaged header: {e}"))?;
-    let body = header
-        .body_len()
-        .ok_or("the header's counts or coefficient type are invalid")?;
-    let want = (end as u64)
-        .checked_add(body)
-        .and_then(|n| n.checked_add(8));
-    if want != Some(file_len) {
+    // Background, each section's length, checksum: the least a body can be.
+    let least = (end + 4 + 8 * SECTIONS + 8) as u64;
+    if file_len < least {
         return Err(format!(
-            "truncated or padded: the header describes {} bytes, the file has {file_len}",
-            want.map_or("too many".into(), |n| n.to_string()),
+            "truncated: {file_len} bytes cannot hold the sections the header describes"
         ));
     }
     if !(1..=crate::light::sh::MAX_BANDS).contains(&header.bands) || header.scale < 1 {
@@ -493,31 +517,65 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
         bytes: &data[start..split],
     };
     let mut density = SparseGrid::new(transform, body.f32()?);
-    for _ in 0..header.leaves {
-        let origin = body.ivec()?;
-        let words = body.u32s::<16>()?;
-        let mask = std::array::from_fn(|i| words[2 * i] as u64 | (words[2 * i + 1] as u64) << 32);
-        let values = body.coefficients(LEAF_VOXELS, false)?;
-        let mut array = [0f32; LEAF_VOXELS];
-        array.copy_from_slice(&values);
+    let leaves = body.section(|r| records(r, header.leaves, LEAF_BYTES))?;
+    let masks: Vec<(IVec3, [u64; 8])> = leaves
+        .chunks_exact(LEAF_BYTES)
+        .map(|b| {
+            let origin = ivecs(&b[..12]).next().unwrap_or(IVec3::ZERO);
+            let mask = std::array::from_fn(|i| {
+                u64::from_le_bytes(std::array::from_fn(|k| b[12 + 8 * i + k]))
+            });
+            (origin, mask)
+        })
+        .collect();
+    let active: usize = masks
+        .iter()
+        .map(|(_, m)| m.iter().map(|w| w.count_ones() as usize).sum::<usize>())
+        .sum();
+    let values = body.section(|r| {
+        let mut values = Vec::new();
+        match header.density {
+            Precision::F32 => r.shuffled::<4>(active, |b| values.push(f32::from_le_bytes(b)))?,
+            Precision::F16 => r.shuffled::<2>(active, |b| {
+                values.push(half::f16::from_le_bytes(b).to_f32())
+            })?,
+            Precision::Q8 => return Err("the header's density precision is invalid".into()),
+        }
+        Ok(values)
+    })?;
+    let mut next = values.into_iter();
+    for (origin, mask) in masks {
+        let mut array = [density.background; LEAF_VOXELS];
+        for (i, v) in array.iter_mut().enumerate() {
+            if mask[i >> 6] >> (i & 63) & 1 == 1 {
+                *v = next.next().unwrap_or(density.background);
+            }
+        }
         density.insert_leaf(origin, mask, array);
     }
+    let tiles = header.tiles.iter().try_fold(0u64, |a, t| a.checked_add(*t));
+    let tiles = body.section(|r| records(r, tiles.unwrap_or(u64::MAX), TILE_BYTES))?;
+    let mut records_left = tiles.chunks_exact(TILE_BYTES);
     for (level, &count) in TileLevel::ALL.iter().zip(&header.tiles) {
-        for _ in 0..count {
-            let origin = body.ivec()?;
-            density.insert_tile(*level, origin, body.f32()?);
+        for b in records_left.by_ref().take(count as usize) {
+            let origin = ivecs(&b[..12]).next().unwrap_or(IVec3::ZERO);
+            density.insert_tile(
+                *level,
+                origin,
+                f32::from_le_bytes([b[12], b[13], b[14], b[15]]),
+            );
         }
     }
-    let mut voxels = Vec::new();
-    for _ in 0..header.transfer_voxels {
-        voxels.push(body.ivec()?);
-    }
-    let layout = TransferLayout::from_voxels(settings.scale, voxels)
+    let voxels = body.section(|r| records(r, header.transfer_voxels, 12))?;
+    let layout = TransferLayout::from_voxels(settings.scale, ivecs(&voxels).collect())
         .ok_or("transfer voxels are repeated or out of order")?;
-    let half = header.coefficients == "f16";
-    let n = layout.len() * settings.bands * settings.bands;
-    let t_ri = body.coefficients(n, half)?;
-    let f_ms = body.coefficients(n, half)?;
+    let coeffs = settings.bands * settings.bands;
+    let precision = header.coefficients;
+    let t_ri = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
+    let f_ms = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
+    if !body.bytes.is_empty() {
+        return Err("padded: bytes follow the last section".into());
+    }
     let transfer = Transfer {
         layout,
         bands: settings.bands,
@@ -540,9 +598,18 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
 mod tests {
     use super::*;
 
-    fn tiny() -> (SparseGrid, Transfer, Header) {
+    /// A tile, and a leaf of two active voxels (0.3 and `peak`) among inactive ones.
+    fn tiny_with(precision: Precision, peak: f32) -> (SparseGrid, Transfer, Header) {
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         g.insert_tile(TileLevel::Block, IVec3::new(8, 0, 0), 0.75);
+        let mut values = [0.0; LEAF_VOXELS];
+        let mut mask = [0u64; 8];
+        for (i, v) in [(5, 0.3), (300, peak)] {
+            values[i] = v;
+            mask[i >> 6] |= 1 << (i & 63);
+        }
+        values[6] = 9.0; // inactive: not stored, read back as the background
+        g.insert_leaf(IVec3::new(0, 16, 0), mask, values);
         let layout = TransferLayout::build(&g, 6);
         let n = layout.len() * 4;
         let transfer = Transfer {
@@ -574,8 +641,77 @@ mod tests {
             grid: "density".into(),
             requested_grid: None,
         };
-        let h = header(&g, &transfer, &settings, origin, false);
+        let h = header(&g, &transfer, &settings, origin, precision);
         (g, transfer, h)
+    }
+
+    fn tiny() -> (SparseGrid, Transfer, Header) {
+        tiny_with(Precision::F32, 0.5)
+    }
+
+    /// The cache bytes with the header replaced by `h` and the checksum made right again: what a
+    /// cache whose counts lie looks like past the checksum.
+    fn with_header(bytes: &[u8], h: &Header) -> Vec<u8> {
+        let (_, end) = parse_header(bytes, bytes.len() as u64).unwrap();
+        let json = serde_json::to_vec(h).unwrap();
+        let mut out = bytes[..16].to_vec();
+        out.extend((json.len() as u64).to_le_bytes());
+        out.extend(json);
+        out.extend(&bytes[end..bytes.len() - 8]);
+        let sum = xxhash_rust::xxh3::xxh3_64(&out);
+        out.extend(sum.to_le_bytes());
+        out
+    }
+
+    #[test]
+    fn reduced_precisions_round_trip_within_their_precision() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.vtc");
+        for (precision, peak, density) in [
+            (Precision::F16, 0.5, Precision::F16),
+            (Precision::Q8, 0.5, Precision::F16),
+            // A value past f16's range keeps the density f32.
+            (Precision::F16, 1e6, Precision::F32),
+        ] {
+            let (g, t, h) = tiny_with(precision, peak);
+            assert_eq!(h.density, density);
+            write(&path, &h, &g, &t).unwrap();
+            let back = read(&path).unwrap();
+            assert_eq!(back.header, h);
+            let close = |a: f32, b: f32, tol: f32| assert!((a - b).abs() <= tol, "{a} vs {b}");
+            // Leaf slot i is voxel (i / 64, i / 8 % 8, i % 8) of the leaf at (0, 16, 0).
+            let at = |i: i32| IVec3::new(i / 64, 16 + i / 8 % 8, i % 8);
+            close(back.density.value(at(5)), 0.3, 2e-4);
+            close(back.density.value(at(300)), peak, 0.0);
+            assert_eq!(back.density.value(IVec3::new(0, 16, 6)), 0.0);
+            assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
+            for (a, b) in back.transfer.t_ri.iter().zip(&t.t_ri) {
+                // Within q8's half step of a band scale (packing's tests bound each precision exactly).
+                close(*a, *b, b.abs().max(1.0) * 5e-3);
+            }
+        }
+    }
+
+    #[test]
+    fn counts_that_lie_past_the_checksum_are_errors() {
+        let (g, t, h) = tiny();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.vtc");
+        write(&path, &h, &g, &t).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert!(read_bytes(&with_header(&bytes, &h)).is_ok());
+        let lies: [fn(&mut Header); 5] = [
+            |h| h.leaves += 1,
+            |h| h.leaves = u64::MAX,
+            |h| h.tiles[1] += 1,
+            |h| h.transfer_voxels -= 1,
+            |h| h.coefficients = Precision::F16,
+        ];
+        for lie in lies {
+            let mut bad = h.clone();
+            lie(&mut bad);
+            assert!(read_bytes(&with_header(&bytes, &bad)).is_err(), "{bad:?}");
+        }
     }
 
     #[test]

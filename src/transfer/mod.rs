@@ -7,6 +7,7 @@ mod fit;
 pub mod lattice;
 mod layout;
 pub mod memory;
+pub mod packing;
 mod single;
 #[cfg(test)]
 mod tests;

@@ -81,10 +81,21 @@ fn bake_refuses_bad_input_clearly() {
         ("--albedo", "1.5"),
         ("--sigma-t", "-1"),
         ("--samples", "3"),
+        ("--cache-precision", "f8"),
     ] {
         let o = vscatter(&["bake", cloud, "-o", out, flag, value]);
         assert_clean_failure(&o, 2, flag);
     }
+    let o = vscatter(&[
+        "bake",
+        cloud,
+        "-o",
+        out,
+        "--cache-half",
+        "--cache-precision",
+        "q8",
+    ]);
+    assert_clean_failure(&o, 2, "--cache-precision");
     let o = vscatter(&["bake", cloud, "-o", out, "--max-memory", "1M"]);
     assert_clean_failure(&o, 1, "--scale");
     assert!(!std::path::Path::new(out).exists());
@@ -173,4 +184,34 @@ fn a_render_from_a_thick_cache_warns_too() {
         "{}",
         stderr(&render)
     );
+}
+
+#[test]
+fn a_q8_cache_is_smaller_and_says_what_it_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let cloud = fixture("small_cloud.vdb");
+    let cloud = cloud.to_str().unwrap();
+    let mut sizes = Vec::new();
+    for p in ["f32", "f16", "q8"] {
+        let out = format!("{p}.vtc");
+        let o = vscatter_in(
+            dir.path(),
+            &["bake", cloud, "-o", &out, "--cache-precision", p],
+        );
+        assert!(o.status.success(), "{}", stderr(&o));
+        sizes.push(std::fs::metadata(dir.path().join(&out)).unwrap().len());
+        let o = vscatter_in(dir.path(), &["info", &out]);
+        assert!(
+            String::from_utf8_lossy(&o.stdout).contains(&format!("{p} coefficients")),
+            "{}",
+            String::from_utf8_lossy(&o.stdout)
+        );
+    }
+    assert!(sizes[0] > sizes[1] && sizes[1] > sizes[2], "{sizes:?}");
+    // A q8 cache renders like any other.
+    let o = vscatter_in(
+        dir.path(),
+        &["render", "q8.vtc", "-o", "q8.png", "--res", "32x18"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
 }
