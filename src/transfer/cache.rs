@@ -29,7 +29,7 @@ use xxhash_rust::xxh3::Xxh3;
 use super::packing::{self, Precision, SectionReader, SectionWriter};
 use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout};
 use crate::error::{Error, Result};
-use crate::volume::grid::{SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+use crate::volume::grid::{Leaf, SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 
 const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// Bumped whenever the layout or the meaning of the data changes; older caches are refused with a
@@ -248,12 +248,8 @@ pub fn header(
         transfer_voxels: transfer.layout.len() as u64,
         coefficients: precision,
         density: match precision.density_f16()
-            && packing::fits_f16(
-                density
-                    .leaves()
-                    .iter()
-                    .flat_map(|l| active_values(l.mask, &l.values)),
-            ) {
+            && packing::fits_f16(density.leaves().iter().flat_map(active_values))
+        {
             true => Precision::F16,
             false => Precision::F32,
         },
@@ -289,7 +285,7 @@ pub fn write(
             })
         })?;
         put_section(&mut w, |s| {
-            let values = leaves.iter().flat_map(|l| active_values(l.mask, &l.values));
+            let values = leaves.iter().flat_map(active_values);
             match header.density {
                 Precision::F16 => s.shuffled(values.map(|v| half::f16::from_f32(v).to_le_bytes())),
                 _ => s.shuffled(values.map(f32::to_le_bytes)),
@@ -329,10 +325,10 @@ pub fn write(
 
 /// The values of a leaf's active voxels, in voxel order: all a cache stores of a leaf's values
 /// (the inactive ones read back as the background).
-fn active_values(mask: [u64; 8], values: &[f32; LEAF_VOXELS]) -> impl Iterator<Item = f32> + '_ {
+fn active_values(leaf: &Leaf) -> impl Iterator<Item = f32> + '_ {
     (0..LEAF_VOXELS)
-        .filter(move |i| mask[i >> 6] >> (i & 63) & 1 == 1)
-        .map(move |i| values[i])
+        .filter(|&i| leaf.is_active(i))
+        .map(|i| leaf.values[i])
 }
 
 /// The cache body after the header, section by section.
@@ -547,7 +543,7 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
     for (origin, mask) in masks {
         let mut array = [density.background; LEAF_VOXELS];
         for (i, v) in array.iter_mut().enumerate() {
-            if mask[i >> 6] >> (i & 63) & 1 == 1 {
+            if Leaf::is_set(&mask, i) {
                 *v = next.next().unwrap_or(density.background);
             }
         }

@@ -141,7 +141,12 @@ impl Leaf {
     }
 
     pub fn is_active(&self, slot: usize) -> bool {
-        self.mask[slot >> 6] >> (slot & 63) & 1 == 1
+        Leaf::is_set(&self.mask, slot)
+    }
+
+    /// Whether `slot`'s bit is set in an active-voxel mask (before a leaf is built from it).
+    pub fn is_set(mask: &[u64; 8], slot: usize) -> bool {
+        mask[slot >> 6] >> (slot & 63) & 1 == 1
     }
 
     pub fn active_count(&self) -> u32 {
