@@ -184,13 +184,17 @@ pub fn put_coefficients(
             let bands = bands_of(coeffs);
             let voxels = || values.chunks_exact(coeffs);
             w.shuffled(voxels().map(|c| to_f16(c[0]).to_le_bytes()))?;
-            w.shuffled(voxels().flat_map(|c| (1..bands).map(|l| scale(band(c, l)).to_le_bytes())))?;
+            // Each band's scale once: the scales section and the bytes both use it.
+            let scales: Vec<half::f16> = voxels()
+                .flat_map(|c| (1..bands).map(move |l| scale(band(c, l))))
+                .collect();
+            w.shuffled(scales.iter().map(|s| s.to_le_bytes()))?;
+            let mut s = scales.iter();
             let bytes: Vec<u8> = voxels()
-                .flat_map(|c| {
-                    (1..bands).flat_map(move |l| {
-                        let s = scale(band(c, l)).to_f32();
-                        band(c, l).iter().map(move |v| quantise(*v, s) as u8)
-                    })
+                .flat_map(|c| (1..bands).map(move |l| band(c, l)))
+                .flat_map(|band| {
+                    let s = s.next().map_or(0.0, |s| s.to_f32());
+                    band.iter().map(move |v| quantise(*v, s) as u8)
                 })
                 .collect();
             w.bytes(&bytes)
