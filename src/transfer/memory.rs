@@ -56,6 +56,7 @@ impl MemoryEstimate {
         voxels: usize,
         settings: &BakeSettings,
         far_field: bool,
+        reflecting: bool,
         threads: usize,
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
@@ -68,16 +69,18 @@ impl MemoryEstimate {
             false => 0,
         };
         let single = 2 * one + sets + far;
-        // Lattice: per-chunk results (one more copy); per link a record in its sweep (24 bytes),
-        // and either the per-cell values the records are gathered from (20 bytes, while the links
-        // are built) or four chunk buffers a thread (while they are swept).
+        // Lattice: per-chunk results (one more copy); per link a record in its sweep (28 bytes),
+        // and either the per-cell values the records are gathered from (24 bytes, while the links
+        // are built) or four chunk buffers a thread, and where thick cells reflect (counted as if
+        // every cell did), one more per direction (while they are swept).
         let d = settings.lattice.directions() as u64;
         // The point values of T_ri stay alive through the lattice (one more copy).
         let lattice = if settings.single_scatter {
             0
         } else {
-            let chunks = threads as u64 * 4 * n * lattice::CHUNK as u64 * 4;
-            2 * one + n * d * 24 + (n * d * 20).max(chunks)
+            let rows = 4 + if reflecting { d } else { 0 };
+            let chunks = threads as u64 * rows * n * lattice::CHUNK as u64 * 4;
+            2 * one + n * d * 28 + (n * d * 24).max(chunks)
         };
         MemoryEstimate {
             density: field_bytes as u64,
@@ -110,11 +113,14 @@ pub struct BakePlan {
     pub estimated: bool,
     /// T_ri's rays will read coarser levels of the density ([`single::far_field`]).
     pub far_field: bool,
+    /// σt, kept so a refusal can estimate other scales (their cells are thicker or thinner).
+    pub sigma_t: f32,
 }
 
 impl BakePlan {
     pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
         let far = single::far_field(&field.grid, sigma_t, settings.samples).1 > 0;
+        let reflecting = lattice::may_reflect(&field.grid, sigma_t, settings.scale);
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
@@ -122,18 +128,27 @@ impl BakePlan {
             return BakePlan {
                 transfer_voxels: n,
                 transfer_tiles: n / 64,
-                estimate: estimate(field, layout as usize, n, settings, far),
+                estimate: estimate(field, layout as usize, n, settings, far, reflecting),
                 estimated: true,
                 far_field: far,
+                sigma_t,
             };
         }
         let layout = TransferLayout::build(&field.grid, settings.scale);
         BakePlan {
             transfer_voxels: layout.len(),
             transfer_tiles: layout.tile_count(),
-            estimate: estimate(field, layout.memory_bytes(), layout.len(), settings, far),
+            estimate: estimate(
+                field,
+                layout.memory_bytes(),
+                layout.len(),
+                settings,
+                far,
+                reflecting,
+            ),
             estimated: false,
             far_field: far,
+            sigma_t,
         }
     }
 
@@ -175,8 +190,10 @@ impl BakePlan {
             lattice: LatticeKind::Faces,
             ..s
         };
+        let reflecting = |k| lattice::may_reflect(&field.grid, self.sigma_t, k);
         let need = |settings: &BakeSettings, voxels: usize| {
-            estimate(field, layout_bytes, voxels, settings, self.far_field).total()
+            let r = reflecting(settings.scale);
+            estimate(field, layout_bytes, voxels, settings, self.far_field, r).total()
         };
         // The finest coarser K that fits, from the estimated count at each K.
         let coarser = (s.scale + 1..=MAX_SCALE).find_map(|k| {
@@ -184,7 +201,8 @@ impl BakePlan {
             let voxels = usize::try_from(about).unwrap_or(usize::MAX);
             let bytes = (about.saturating_mul(LAYOUT_BYTES_PER_VOXEL)) as usize;
             let at_k = BakeSettings { scale: k, ..s };
-            let total = estimate(field, bytes, voxels, &at_k, self.far_field).total();
+            let total =
+                estimate(field, bytes, voxels, &at_k, self.far_field, reflecting(k)).total();
             (total <= limit).then_some((k, total))
         });
         let coarser = match coarser {
@@ -223,6 +241,7 @@ fn estimate(
     voxels: usize,
     settings: &BakeSettings,
     far_field: bool,
+    reflecting: bool,
 ) -> MemoryEstimate {
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.accelerator_bytes(),
@@ -230,6 +249,7 @@ fn estimate(
         voxels,
         settings,
         far_field,
+        reflecting,
         rayon::current_num_threads(),
     )
 }
