@@ -408,12 +408,40 @@ fn reflection(t: f64) -> f64 {
     (r - 1.0) / (r + 1.0)
 }
 
-/// Whether any cell of a bake of `density` at `sigma_t` and scale `k` can reflect (it then holds
-/// one row of reflected light per lattice direction in each chunk's sweep).
-pub fn may_reflect(density: &crate::volume::grid::SparseGrid, sigma_t: f32, k: i32) -> bool {
-    let max = density.value_stats().map_or(0.0, |s| s.max.max(0.0));
+/// The share of a bake's cells that can reflect, for the memory estimate (each holds one row of
+/// reflected light per lattice direction in a chunk's sweep): the active voxels of the leaves and
+/// tiles whose mean value is more than one optical depth per cell edge, of all active voxels (a
+/// cell's lines average the density as a leaf's mean does).
+pub fn reflecting_share(density: &crate::volume::grid::SparseGrid, sigma_t: f32, k: i32) -> f64 {
+    use crate::volume::grid::{TileLevel, LEAF_VOXELS};
     let edge = density.transform.voxel_size().max_element() * k as f64;
-    sigma_t as f64 * max as f64 * edge > REFLECT_ABOVE_DEPTH
+    let thick = |max: f32| sigma_t as f64 * max as f64 * edge > REFLECT_ABOVE_DEPTH;
+    let (mut reflecting, mut all) = (0.0f64, 0.0f64);
+    for leaf in density.leaves() {
+        let count = leaf.active_count() as f64;
+        let sum: f32 = (0..LEAF_VOXELS)
+            .filter(|&slot| leaf.is_active(slot))
+            .map(|slot| leaf.values[slot])
+            .sum();
+        all += count;
+        if count > 0.0 && thick(sum / count as f32) {
+            reflecting += count;
+        }
+    }
+    for level in TileLevel::ALL {
+        for (_, value) in density.tiles(level) {
+            let count = level.voxel_count() as f64;
+            all += count;
+            if thick(value) {
+                reflecting += count;
+            }
+        }
+    }
+    if all > 0.0 {
+        reflecting / all
+    } else {
+        0.0
+    }
 }
 
 /// Quadrature points for the Voronoi means ȳ_ij: 65 536 spherical-Fibonacci points put ~2 500 in

@@ -56,7 +56,7 @@ impl MemoryEstimate {
         voxels: usize,
         settings: &BakeSettings,
         far_field: bool,
-        reflecting: bool,
+        reflecting: f64,
         threads: usize,
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
@@ -71,15 +71,15 @@ impl MemoryEstimate {
         let single = 2 * one + sets + far;
         // Lattice: per-chunk results (one more copy); per link a record in its sweep (28 bytes),
         // and either the per-cell values the records are gathered from (24 bytes, while the links
-        // are built) or four chunk buffers a thread, and where thick cells reflect (counted as if
-        // every cell did), one more per direction (while they are swept).
+        // are built) or four chunk buffers a thread, and for the cells that reflect (the share
+        // of the active voxels in thick leaves and tiles) one more per direction (while swept).
         let d = settings.lattice.directions() as u64;
         // The point values of T_ri stay alive through the lattice (one more copy).
         let lattice = if settings.single_scatter {
             0
         } else {
-            let rows = 4 + if reflecting { d } else { 0 };
-            let chunks = threads as u64 * rows * n * lattice::CHUNK as u64 * 4;
+            let rows = 4.0 + reflecting * d as f64;
+            let chunks = (threads as f64 * rows * (n * lattice::CHUNK as u64 * 4) as f64) as u64;
             2 * one + n * d * 28 + (n * d * 24).max(chunks)
         };
         MemoryEstimate {
@@ -120,7 +120,7 @@ pub struct BakePlan {
 impl BakePlan {
     pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
         let far = single::far_field(&field.grid, sigma_t, settings.samples).1 > 0;
-        let reflecting = lattice::may_reflect(&field.grid, sigma_t, settings.scale);
+        let reflecting = lattice::reflecting_share(&field.grid, sigma_t, settings.scale);
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
@@ -190,7 +190,7 @@ impl BakePlan {
             lattice: LatticeKind::Faces,
             ..s
         };
-        let reflecting = |k| lattice::may_reflect(&field.grid, self.sigma_t, k);
+        let reflecting = |k| lattice::reflecting_share(&field.grid, self.sigma_t, k);
         let need = |settings: &BakeSettings, voxels: usize| {
             let r = reflecting(settings.scale);
             estimate(field, layout_bytes, voxels, settings, self.far_field, r).total()
@@ -241,7 +241,7 @@ fn estimate(
     voxels: usize,
     settings: &BakeSettings,
     far_field: bool,
-    reflecting: bool,
+    reflecting: f64,
 ) -> MemoryEstimate {
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.accelerator_bytes(),
