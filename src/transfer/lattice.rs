@@ -408,39 +408,51 @@ fn reflection(t: f64) -> f64 {
     (r - 1.0) / (r + 1.0)
 }
 
-/// The share of a bake's cells that can reflect, for the memory estimate (each holds one row of
-/// reflected light per lattice direction in a chunk's sweep): the active voxels of the leaves and
-/// tiles whose mean value is more than one optical depth per cell edge, of all active voxels (a
-/// cell's lines average the density as a leaf's mean does).
-pub fn reflecting_share(density: &crate::volume::grid::SparseGrid, sigma_t: f32, k: i32) -> f64 {
-    use crate::volume::grid::{TileLevel, LEAF_VOXELS};
-    let edge = density.transform.voxel_size().max_element() * k as f64;
-    let thick = |max: f32| sigma_t as f64 * max as f64 * edge > REFLECT_ABOVE_DEPTH;
-    let (mut reflecting, mut all) = (0.0f64, 0.0f64);
-    for leaf in density.leaves() {
-        let count = leaf.active_count() as f64;
-        let sum: f32 = (0..LEAF_VOXELS)
-            .filter(|&slot| leaf.is_active(slot))
-            .map(|slot| leaf.values[slot])
-            .sum();
-        all += count;
-        if count > 0.0 && thick(sum / count as f32) {
-            reflecting += count;
+/// The mean density of each leaf and tile with its active voxel count, gathered once, so the
+/// memory estimate can ask at any σt and scale which share of a bake's cells can reflect (each
+/// holds one row of reflected light per lattice direction in a chunk's sweep).
+pub struct DensityMeans {
+    /// (mean value, active voxels) per leaf and tile.
+    means: Vec<(f32, f64)>,
+    /// The largest voxel edge in world units.
+    voxel: f64,
+}
+
+impl DensityMeans {
+    pub fn new(density: &crate::volume::grid::SparseGrid) -> DensityMeans {
+        use crate::volume::grid::{TileLevel, LEAF_VOXELS};
+        let leaves = density.leaves().iter().map(|leaf| {
+            let count = leaf.active_count() as f64;
+            let sum: f32 = (0..LEAF_VOXELS)
+                .filter(|&slot| leaf.is_active(slot))
+                .map(|slot| leaf.values[slot])
+                .sum();
+            (sum / count.max(1.0) as f32, count)
+        });
+        let tiles = TileLevel::ALL.into_iter().flat_map(|level| {
+            density
+                .tiles(level)
+                .map(move |(_, value)| (value, level.voxel_count() as f64))
+        });
+        DensityMeans {
+            means: leaves.chain(tiles).collect(),
+            voxel: density.transform.voxel_size().max_element(),
         }
     }
-    for level in TileLevel::ALL {
-        for (_, value) in density.tiles(level) {
-            let count = level.voxel_count() as f64;
-            all += count;
-            if thick(value) {
-                reflecting += count;
-            }
+
+    /// The active voxels of the leaves and tiles whose mean is more than one optical depth per
+    /// cell edge at `sigma_t` and scale `k`, of all active voxels (a cell's lines average the
+    /// density as a leaf's mean does).
+    pub fn reflecting_share(&self, sigma_t: f32, k: i32) -> f64 {
+        let edge = self.voxel * k as f64;
+        let thick = |mean: f32| sigma_t as f64 * mean as f64 * edge > REFLECT_ABOVE_DEPTH;
+        let all: f64 = self.means.iter().map(|m| m.1).sum();
+        let reflecting: f64 = self.means.iter().filter(|m| thick(m.0)).map(|m| m.1).sum();
+        if all > 0.0 {
+            reflecting / all
+        } else {
+            0.0
         }
-    }
-    if all > 0.0 {
-        reflecting / all
-    } else {
-        0.0
     }
 }
 

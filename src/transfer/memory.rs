@@ -120,7 +120,8 @@ pub struct BakePlan {
 impl BakePlan {
     pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
         let far = single::far_field(&field.grid, sigma_t, settings.samples).1 > 0;
-        let reflecting = lattice::reflecting_share(&field.grid, sigma_t, settings.scale);
+        let reflecting =
+            lattice::DensityMeans::new(&field.grid).reflecting_share(sigma_t, settings.scale);
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
@@ -190,7 +191,8 @@ impl BakePlan {
             lattice: LatticeKind::Faces,
             ..s
         };
-        let reflecting = |k| lattice::reflecting_share(&field.grid, self.sigma_t, k);
+        let means = lattice::DensityMeans::new(&field.grid);
+        let reflecting = |k| means.reflecting_share(self.sigma_t, k);
         let need = |settings: &BakeSettings, voxels: usize| {
             let r = reflecting(settings.scale);
             estimate(field, layout_bytes, voxels, settings, self.far_field, r).total()
