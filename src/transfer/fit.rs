@@ -14,8 +14,9 @@
 //! error the march makes, sample by sample. The normal equations are M·L = b with
 //! M_nm = Σ_p ρ w_n w_m (a 27-point stencil, the same for every SH coefficient) and
 //! b_n = Σ_p ρ w_n T_ri(p) = S_n·t̄_n, S_n = Σ_p ρ w_n and t̄_n the mean of T_ri over the
-//! distribution ρ·w_n. `single` estimates t̄_n with the same number of rays as a point value,
-//! starting each direction's ray at its own point of that distribution ([`spread_starts`]).
+//! distribution ρ·w_n. `single` estimates t̄_n with the same number of rays as a point value:
+//! each direction draws its own point of that distribution ([`spread_starts`]) and averages T_ri
+//! along the footprint's chord through it in that direction.
 //!
 //! Nodes whose footprint holds no density (S_n = 0) never reach a rendered sample: they keep the
 //! value they were given. The system is solved by Jacobi-preconditioned conjugate gradients.
@@ -32,9 +33,10 @@ use crate::volume::SparseGrid;
 /// torus and cloud, the images stop changing after 5 iterations and 20 agree with 50.
 const CG_ITERATIONS: usize = 20;
 
-/// The tent weight of offset `o` (in density voxels) from a node, K voxels to the next node.
-fn tent(o: IVec3, k: i32) -> f64 {
-    let w = |t: i32| 1.0 - t.abs() as f64 / k as f64;
+/// The tent weight w_n of offset `o` (in density voxels) from a node, K voxels to the next node:
+/// the trilinear interpolation weight of the node, zero K voxels away.
+pub fn tent(o: Vec3, k: i32) -> f32 {
+    let w = |t: f32| (1.0 - t.abs() / k as f32).max(0.0);
     w(o.x) * w(o.y) * w(o.z)
 }
 
@@ -46,7 +48,7 @@ fn footprint(density: &SparseGrid, k: i32, v: IVec3) -> (Vec<IVec3>, Vec<f64>) {
         for y in -k + 1..k {
             for z in -k + 1..k {
                 let o = IVec3::new(x, y, z);
-                let weight = density.value(c + o).max(0.0) as f64 * tent(o, k);
+                let weight = (density.value(c + o).max(0.0) * tent(o.as_vec3(), k)) as f64;
                 if weight > 0.0 {
                     total += weight;
                     cells.push(o);
@@ -84,8 +86,10 @@ fn direction_key(d: Vec3) -> u32 {
     morton3(IVec3::new(q(u), q(w), 0))
 }
 
-/// Ray origins for the directions `dirs` of node `v`: one point per direction, drawn from ρ·w_n,
-/// so the projected rays estimate t̄_n. `None` when the footprint holds no density.
+/// Ray origins for the directions `dirs` of node `v`: one point per direction, drawn from ρ·w_n.
+/// The chord along a direction through its point is then drawn in proportion to the chord's own
+/// ∫ρ·w_n, so its ρ·w_n-weighted mean of T_ri estimates t̄_n without bias. `None` when the
+/// footprint holds no density.
 ///
 /// Stratified jointly in position and direction: a bright light covers only a handful of the
 /// directions, and independent random points would leave its light at the mercy of a few draws

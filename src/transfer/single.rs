@@ -130,9 +130,9 @@ fn set_of(v: IVec3, seed: u64) -> usize {
 pub enum Origins {
     /// At the node: T_ri(x_n, ω), the point value.
     Node,
-    /// Each direction at its own point of the density around the node
-    /// ([`super::fit::spread_starts`]): the footprint mean t̄_n (the node itself where its
-    /// footprint is empty).
+    /// The footprint mean t̄_n: each direction's T_ri averaged, by ρ·w_n, along the footprint's
+    /// chord in that direction through its own point of the density around the node
+    /// ([`super::fit::spread_starts`]); the node's point value where its footprint is empty.
     Footprint,
 }
 
@@ -188,8 +188,12 @@ pub fn bake_single(
                         }
                     }
                     Some(starts) => {
+                        let k = layout.k;
+                        let footprint = (x - k as f32, x + k as f32);
                         for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts) {
-                            *t = depth.transmittance(*p, *d);
+                            *t = depth
+                                .chord_mean(*p, *d, footprint, |q| super::fit::tent(q - x, k))
+                                .unwrap_or_else(|| depth.transmittance(*p, *d));
                         }
                     }
                 }
