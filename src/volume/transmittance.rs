@@ -115,8 +115,14 @@ impl<'a> OpticalDepth<'a> {
 
     /// Transmittance from index point `origin` toward world direction `dir` (unit) to infinity.
     pub fn transmittance(&self, origin: Vec3, dir: Vec3) -> f32 {
+        self.transmittance_beyond(origin, dir, 0.0)
+    }
+
+    /// [`Self::transmittance`] for the rest of a ray that started `travelled` world units before
+    /// `origin`: the far field's coarser levels begin where they would have on the whole ray.
+    fn transmittance_beyond(&self, origin: Vec3, dir: Vec3, travelled: f32) -> f32 {
         let (exit, v) = self.clip(origin, dir);
-        (-self.integrate(origin, v, exit, -MIN_TRANSMITTANCE.ln())).exp()
+        (-self.integrate(origin, v, exit, -MIN_TRANSMITTANCE.ln(), travelled)).exp()
     }
 
     /// The mean transmittance toward world direction `dir` (unit) along the chord of the index box
@@ -150,43 +156,53 @@ impl<'a> OpticalDepth<'a> {
         if exit <= enter {
             return None;
         }
-        let beyond = self.transmittance(origin + v * exit, dir);
+        // The levels are as wide as a direction's cone from the chord's own start allows.
+        let beyond = self.transmittance_beyond(origin + v * exit, dir, exit.max(0.0));
         let steps = ((exit - enter) / self.step).ceil().max(1.0);
         let step = (exit - enter) / steps;
         let mut sampler = self.field.sampler();
-        let (mut tau, mut weighted, mut total) = (0.0f32, 0.0f32, 0.0f32);
+        // `t` is the transmittance from the start of the current step to where the chord leaves.
+        let (mut t, mut weighted, mut total) = (1.0f32, 0.0f32, 0.0f32);
         for k in 0..steps as u32 {
             let p = origin + v * (exit - (k as f32 + 0.5) * step);
             let rho = sampler.sample(p);
+            if rho <= 0.0 {
+                continue;
+            }
             let w = rho * weight(p);
             // T averaged over the step exactly for the density of its midpoint: at an optical
             // depth per step near one, T at the midpoint alone is 1–2 % low.
             let delta = self.sigma_t * rho * step;
+            let across = (-delta).exp();
             let mean = match delta > 1e-4 {
-                true => -(-delta).exp_m1() / delta,
+                true => (1.0 - across) / delta,
                 false => 1.0 - 0.5 * delta,
             };
-            weighted += w * (-tau).exp() * mean;
+            weighted += w * t * mean;
             total += w;
-            tau += delta;
+            t *= across;
         }
         (total > 0.0).then(|| beyond * weighted / total)
     }
 
     /// ∫ σt·ρ over [0, end] (world units), stopping past `cutoff`: at the fine level, or with a
-    /// far field, through ever coarser levels as the ray goes on.
-    fn integrate(&self, origin: Vec3, v: Vec3, end: f32, cutoff: f32) -> f32 {
+    /// far field, through ever coarser levels as the ray goes on — as a ray that started
+    /// `travelled` before `origin` would.
+    fn integrate(&self, origin: Vec3, v: Vec3, end: f32, cutoff: f32, travelled: f32) -> f32 {
         let Some(far) = self.far else {
             return self.march(self.field, origin, v, (0.0, end), self.step, cutoff, 0.0);
         };
-        let (mut tau, mut t0) = (0.0, 0.0);
+        let (mut tau, mut t0, mut level_end) = (0.0, 0.0, -travelled);
         for level in 0..=far.mip.len() {
-            let span = self.step * (far.near << level) as f32;
+            level_end += self.step * (far.near << level) as f32;
             let t1 = if level == far.mip.len() {
                 end
             } else {
-                end.min(t0 + span)
+                end.min(level_end)
             };
+            if t1 <= t0 {
+                continue;
+            }
             tau = match level {
                 0 => self.march(self.field, origin, v, (t0, t1), self.step, cutoff, tau),
                 _ => {
@@ -348,12 +364,12 @@ mod tests {
         let (exit, v) = fine.clip(o, dir);
         assert!(exit > 40.0);
         assert_eq!(
-            fine.integrate(o, v, 39.5, f32::INFINITY),
-            far.integrate(o, v, 39.5, f32::INFINITY)
+            fine.integrate(o, v, 39.5, f32::INFINITY, 0.0),
+            far.integrate(o, v, 39.5, f32::INFINITY, 0.0)
         );
         assert_ne!(
-            fine.integrate(o, v, exit, f32::INFINITY),
-            far.integrate(o, v, exit, f32::INFINITY)
+            fine.integrate(o, v, exit, f32::INFINITY, 0.0),
+            far.integrate(o, v, exit, f32::INFINITY, 0.0)
         );
     }
 
