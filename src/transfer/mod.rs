@@ -114,12 +114,14 @@ pub fn bake(
         stats.far_field_bytes = mip.memory_bytes();
         let far = FarField { mip: &mip, near };
         let depth = OpticalDepth::new(field, medium.sigma_t, true).with_far_field(far);
+        let chord_step = single::chord_step(density, medium.sigma_t);
         let single = |origins| {
             let single = single::SingleSettings {
                 bands: settings.bands,
                 samples: settings.samples,
                 seed: settings.seed,
                 origins,
+                chord_step,
             };
             single::bake_single(density, &layout, &depth, single, &bar)
         };

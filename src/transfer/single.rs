@@ -38,6 +38,27 @@ const FAR_FIELD_MARGIN: f32 = 2.0;
 /// 4–8 optical depths across; capped at one, a medium that thick marches at full resolution.
 const FAR_FIELD_MAX_DEPTH: f32 = 1.0;
 
+/// The largest optical depth one step of a footprint's chord may cross at the density's maximum.
+/// A step's mean transmittance is exact for the density at its midpoint, so a thin medium can take
+/// longer steps; where T falls within a step, where within it the density sits matters. Measured
+/// on the torus fixture (studio, single scattering, 256×144): two-voxel steps left σt 0.092 as it
+/// was (4.0 against 4.1 % off the path tracer) and cost 8 % less of the bake on torus300 at σt
+/// 0.1, but at σt 1 moved the bias from −10.5 to −14.0 %.
+const CHORD_STEP_DEPTH: f32 = 0.25;
+/// The longest chord step, in voxels: past two, a step spans more than a density voxel's
+/// neighbours, whose trilinear ramp it would sample once.
+const CHORD_MAX_STEP: f32 = 2.0;
+
+/// The chord step, in voxels, for `density` at `sigma_t` ([`CHORD_STEP_DEPTH`]).
+pub fn chord_step(density: &SparseGrid, sigma_t: f32) -> f32 {
+    let max = density.value_stats().map_or(0.0, |s| s.max.max(0.0));
+    let voxel_depth = sigma_t * max * density.transform.voxel_size().min_element() as f32;
+    match voxel_depth > 0.0 {
+        true => (CHORD_STEP_DEPTH / voxel_depth).clamp(1.0, CHORD_MAX_STEP),
+        false => CHORD_MAX_STEP,
+    }
+}
+
 /// Fine steps a T_ri ray takes before it moves on to coarser density, and how many coarser levels
 /// it uses, for `samples` directions through `density` at `sigma_t`.
 ///
@@ -143,6 +164,8 @@ pub struct SingleSettings {
     pub samples: usize,
     pub seed: u64,
     pub origins: Origins,
+    /// Voxels per step along a footprint's chord ([`chord_step`]).
+    pub chord_step: f32,
 }
 
 /// T_ri for every transfer voxel of `layout`, `layout.len() × bands²`, through the optical depth
@@ -192,7 +215,9 @@ pub fn bake_single(
                         let footprint = (x - k as f32, x + k as f32);
                         for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts) {
                             *t = depth
-                                .chord_mean(*p, *d, footprint, |q| super::fit::tent(q - x, k))
+                                .chord_mean(*p, *d, footprint, settings.chord_step, |q| {
+                                    super::fit::tent(q - x, k)
+                                })
                                 .unwrap_or_else(|| depth.transmittance(*p, *d));
                         }
                     }
@@ -259,6 +284,7 @@ mod tests {
             samples: 512,
             seed: 1,
             origins: Origins::Node,
+            chord_step: 1.0,
         };
         let t = bake_single(
             &empty.grid,

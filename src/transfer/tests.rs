@@ -229,6 +229,7 @@ fn t_ri_agrees_with_a_brute_force_reference() {
         samples: 512,
         seed: 3,
         origins: Origins::Node,
+        chord_step: 1.0,
     };
     let t = bake_single(
         &d,
@@ -284,6 +285,7 @@ fn empty_space_skipping_changes_no_result() {
             samples: 64,
             seed: 5,
             origins: Origins::Footprint,
+            chord_step: 1.0,
         };
         let depth = OpticalDepth::new(&f, medium.sigma_t, skip_empty);
         bake_single(&d, &layout, &depth, s, &indicatif::ProgressBar::hidden())
@@ -379,6 +381,7 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
             samples: 1024,
             seed: 1,
             origins: Origins::Node,
+            chord_step: 1.0,
         },
         &indicatif::ProgressBar::hidden(),
     );

@@ -131,15 +131,15 @@ impl<'a> OpticalDepth<'a> {
     ///
     /// One ray from where the chord leaves the box toward `dir` gives the transmittance of
     /// everything beyond it; the chord is then walked back from there, one midpoint sample per
-    /// step, the optical depth growing as it goes. Each sample costs what a step of the ray from
-    /// `origin` would have, and the chord's depth is integrated, not drawn: inside a thick
-    /// footprint T runs from 1 to nothing along the light, and a single point per direction
-    /// leaves that to chance (docs/model.md, "The transfer").
+    /// step of at most `step_voxels`, the optical depth growing as it goes. The chord's depth is
+    /// integrated, not drawn: inside a thick footprint T runs from 1 to nothing along the light,
+    /// and a single point per direction leaves that to chance (docs/model.md, "The transfer").
     pub fn chord_mean(
         &self,
         origin: Vec3,
         dir: Vec3,
         (lo, hi): (Vec3, Vec3),
+        step_voxels: f32,
         weight: impl Fn(Vec3) -> f32,
     ) -> Option<f32> {
         let v = dir * self.inv_scale;
@@ -158,7 +158,7 @@ impl<'a> OpticalDepth<'a> {
         }
         // The levels are as wide as a direction's cone from the chord's own start allows.
         let beyond = self.transmittance_beyond(origin + v * exit, dir, exit.max(0.0));
-        let steps = ((exit - enter) / self.step).ceil().max(1.0);
+        let steps = ((exit - enter) / (step_voxels * self.step)).ceil().max(1.0);
         let step = (exit - enter) / steps;
         let mut sampler = self.field.sampler();
         // `t` is the transmittance from the start of the current step to where the chord leaves.
@@ -402,13 +402,13 @@ mod tests {
         let d = OpticalDepth::new(&field, sigma, true);
         let box_ = (Vec3::new(150.0, 50.0, 50.0), Vec3::new(170.0, 80.0, 80.0));
         let mean = d
-            .chord_mean(Vec3::new(163.2, 64.0, 64.0), Vec3::X, box_, |_| 1.0)
+            .chord_mean(Vec3::new(163.2, 64.0, 64.0), Vec3::X, box_, 1.0, |_| 1.0)
             .unwrap();
         let want = (-sigma * 85.5).exp() * (1.0 - (-20.0 * sigma).exp()) / (20.0 * sigma);
         assert!((mean / want - 1.0).abs() < 1e-3, "{mean} vs {want}");
         // A chord that misses the box holds nothing.
         let outside = Vec3::new(163.2, 90.0, 64.0);
-        assert_eq!(d.chord_mean(outside, Vec3::X, box_, |_| 1.0), None);
+        assert_eq!(d.chord_mean(outside, Vec3::X, box_, 1.0, |_| 1.0), None);
     }
 
     #[test]
@@ -430,7 +430,7 @@ mod tests {
         let dir = Vec3::new(-0.9, 0.3, -0.2).normalize();
         let origin = Vec3::new(131.0, 63.0, 65.0);
         let mean = d
-            .chord_mean(origin, dir, (lo, hi), |q| tent(q.as_dvec3()) as f32)
+            .chord_mean(origin, dir, (lo, hi), 1.0, |q| tent(q.as_dvec3()) as f32)
             .unwrap();
         let rho = |x: f64| (x - 127.0).clamp(0.0, 1.0);
         let integral = |x: f64| match x {
