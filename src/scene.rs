@@ -14,7 +14,9 @@ use crate::io::progress::Phases;
 use crate::light::Lighting;
 use crate::pathtrace::{Medium3d, PathStats, PathTracer};
 use crate::render::sunlight::SunLight;
-use crate::render::{self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats};
+use crate::render::{
+    self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats, TransferShape,
+};
 use crate::transfer::cache::{self, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
 use crate::transfer::packing::Precision;
@@ -48,15 +50,20 @@ pub struct Scene {
     /// The suns' shadow volumes and lattice solves, kept while a sun does not move: another
     /// camera, or another environment with the same sun, reuses them.
     sun_lights: Mutex<Vec<Arc<SunLight>>>,
+    /// The visibility that shapes a single-scattering transfer, kept for the transfer's life.
+    shape: Mutex<Option<Arc<TransferShape>>>,
 }
 
-/// What the suns of one render cost, for `--stats`.
+/// What the light of one render cost beyond relighting, for `--stats`.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct SunReport {
+pub struct LightReport {
     pub shadow_seconds: f64,
     pub lattice_seconds: f64,
     /// Bytes held by the suns' shadow volumes and fluences.
     pub bytes: u64,
+    /// Building the [`TransferShape`] (0 when kept from an earlier render or not needed).
+    pub shape_seconds: f64,
+    pub shape_bytes: u64,
 }
 
 impl Scene {
@@ -91,6 +98,7 @@ impl Scene {
             read_seconds,
             field_seconds: clock.elapsed().as_secs_f64(),
             sun_lights: Mutex::new(Vec::new()),
+            shape: Mutex::new(None),
         })
     }
 
@@ -182,33 +190,66 @@ impl Scene {
         background: bool,
         settings: &MarchSettings,
         progress: &ProgressBar,
-    ) -> Result<(Frame, MarchStats, render::RenderReport, SunReport)> {
+    ) -> Result<(Frame, MarchStats, render::RenderReport, LightReport)> {
         let Some(transfer) = &self.transfer else {
             return Err(crate::Error::Runtime(
                 "the scene has no transfer: bake it first".into(),
             ));
         };
-        let (lights, suns) = self.sun_lights(transfer, lighting);
+        let (lights, mut report) = self.sun_lights(transfer, lighting);
         let refs: Vec<&SunLight> = lights.iter().map(|l| l.as_ref()).collect();
+        let shape = self.shape(transfer, &mut report);
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
-        let (frame, stats, report) = render::render_volume(
+        let (frame, stats, times) = render::render_volume(
             &self.field,
             transfer,
             &render::Light {
                 lighting,
                 suns: &refs,
+                shape: shape.as_deref(),
             },
             background,
             camera,
             settings,
             progress,
         );
-        Ok((frame, stats, report, suns))
+        Ok((frame, stats, times, report))
     }
 
-    /// Bytes the light of `lighting.suns` will hold, estimated before it is built: a shadow
-    /// volume and a fluence per transfer voxel for each sun not kept from an earlier render.
+    /// The [`TransferShape`] of a single-scattering transfer: kept, or built now.
+    fn shape(&self, transfer: &Transfer, report: &mut LightReport) -> Option<Arc<TransferShape>> {
+        if transfer.lattice.is_some() {
+            return None;
+        }
+        let mut kept = self.shape.lock().unwrap_or_else(|e| e.into_inner());
+        let shape = kept.get_or_insert_with(|| {
+            let shape = Arc::new(TransferShape::build(&self.field, transfer));
+            report.shape_seconds = shape.seconds;
+            shape
+        });
+        report.shape_bytes = shape.memory_bytes();
+        Some(shape.clone())
+    }
+
+    /// Bytes the light of `lighting` will hold beyond the transfer, estimated before it is built:
+    /// a shadow volume and a fluence per transfer voxel for each sun not kept from an earlier
+    /// render, and a single-scattering transfer's [`TransferShape`] unless kept.
+    pub fn light_plan(&self, lighting: &Lighting) -> u64 {
+        self.shape_plan() + self.sun_plan(lighting)
+    }
+
+    /// The [`TransferShape`]'s share of [`Scene::light_plan`].
+    pub fn shape_plan(&self) -> u64 {
+        match &self.transfer {
+            Some(t) if t.lattice.is_none() && self.shape.lock().is_ok_and(|s| s.is_none()) => {
+                TransferShape::estimate_bytes(&self.field, t)
+            }
+            _ => 0,
+        }
+    }
+
+    /// The suns' share of [`Scene::light_plan`].
     pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
         let kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
         let per_sun = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid)
@@ -230,6 +271,7 @@ impl Scene {
             .get_mut()
             .unwrap_or_else(|e| e.into_inner())
             .clear();
+        *self.shape.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
     }
 
     /// The light of each of `lighting.suns`: kept from an earlier render where the sun has not
@@ -238,9 +280,9 @@ impl Scene {
         &self,
         transfer: &Transfer,
         lighting: &Lighting,
-    ) -> (Vec<Arc<SunLight>>, SunReport) {
+    ) -> (Vec<Arc<SunLight>>, LightReport) {
         let mut kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
-        let mut report = SunReport::default();
+        let mut report = LightReport::default();
         let lights: Vec<Arc<SunLight>> = lighting
             .suns
             .iter()

@@ -501,7 +501,7 @@ fn transfer(
         println!("{}", sun_plan(scene, view.lighting));
         return Ok(None);
     }
-    let sun_bytes = scene.sun_plan(view.lighting);
+    let sun_bytes = scene.light_plan(view.lighting);
     let held = scene.field.grid.memory_bytes() as u64
         + scene.field.accelerator_bytes() as u64
         + scene
@@ -533,6 +533,8 @@ fn transfer(
     stats["sun_shadow_seconds"] = json!(suns.shadow_seconds);
     stats["sun_lattice_seconds"] = json!(suns.lattice_seconds);
     stats["sun_bytes"] = json!(suns.bytes);
+    stats["visibility_seconds"] = json!(suns.shape_seconds);
+    stats["visibility_bytes"] = json!(suns.shape_bytes);
     stats["march_seconds"] = json!(report.march.as_secs_f64());
     stats["rays"] = json!(march.rays);
     stats["samples_taken"] = json!(march.samples_taken);
@@ -540,11 +542,20 @@ fn transfer(
     Ok(Some(frame))
 }
 
-/// What the suns will hold, for `--dry-run`: one line.
+/// What the suns (and a single-scattering transfer's visibility) will hold, for `--dry-run`: one
+/// line.
 fn sun_plan(scene: &Scene, lighting: &Lighting) -> String {
-    format!(
+    let mut line = format!(
         "{} suns: shadow volumes and fluences about {}",
         lighting.suns.len(),
         HumanBytes(scene.sun_plan(lighting))
-    )
+    );
+    let shape = scene.shape_plan();
+    if shape > 0 {
+        line += &format!(
+            "; the visibility that shapes single scattering about {}",
+            HumanBytes(shape)
+        );
+    }
+    line
 }

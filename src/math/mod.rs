@@ -4,3 +4,4 @@
 pub mod floor;
 pub mod hash;
 pub mod ray;
+pub mod sphere;

@@ -32,6 +32,7 @@ use crate::transfer::{Medium, TransferLayout, PHASE};
 use crate::volume::bricks::BrickSampler;
 use crate::volume::grid::corner;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
+use crate::volume::visibility::Visibility;
 use crate::volume::DensityField;
 
 /// Stop marching when less than this fraction of the background still shows through. The rest of
@@ -164,31 +165,52 @@ impl<'a> InScatter for SunRadiance<'a> {
 /// Ls interpolated from the per-transfer-voxel radiance of [`crate::render::relight`], with the
 /// trilinear weights of [`TransferLayout::corners`].
 ///
-/// Plain trilinear interpolation, direct light included: T_ri falls off exponentially into the
+/// Trilinear interpolation, direct light included: T_ri falls off exponentially into the
 /// medium and a straight line between two nodes lies above it, but the stored T_ri is not the
 /// nodes' point value — it is fitted so that exactly this interpolation matches T_ri where the
-/// density is ([`crate::transfer::fit`]).
-pub struct TransferRadiance {
+/// density is ([`crate::transfer::fit`]). Within a transfer voxel the fit can only follow a
+/// straight line; with the density's [`Visibility`] the direct light takes the shape of its fall
+/// from V: Ls_direct(p)·V(p)/V̂(p), V̂ the interpolation of V's own fitted node values, so a
+/// transfer that is V times a smooth field is reproduced at the density's resolution.
+pub struct TransferRadiance<'a> {
     inv_k: f32,
-    /// Per slot, direct RGB then indirect RGB — one record, one cache line read per corner —
-    /// and a last all-zero record that missing corners point at, so a corner needs no test.
-    nodes: Vec<[f32; 6]>,
+    /// Per slot, direct RGB, indirect RGB and the fitted V — one record, one cache line read per
+    /// corner — and a last all-zero record that missing corners point at, so a corner needs no
+    /// test.
+    nodes: Vec<[f32; 7]>,
     /// Per interpolation cell (key = its lowest transfer voxel), the records of its eight
     /// corners: one hash lookup when a ray enters a cell instead of eight.
     cells: HashMap<IVec3, [u32; 8]>,
+    visibility: Option<&'a Visibility>,
 }
 
-impl TransferRadiance {
-    pub fn new(layout: &TransferLayout, radiance: &Radiance) -> Self {
-        let mut nodes: Vec<[f32; 6]> = radiance
+/// Smallest interpolated V the direct light is reshaped by: below it the node values are too
+/// dark for their ratio to mean anything.
+const MIN_FITTED_VISIBILITY: f32 = 1e-4;
+/// Largest factor V/V̂ takes: where the fit of V dips far below the fine V (its ringing at a
+/// thin wisp's edge) the ratio must not blow the node light up.
+const MAX_VISIBILITY_RATIO: f32 = 4.0;
+
+impl<'a> TransferRadiance<'a> {
+    /// `node_visibility` (the fitted V per slot) and `visibility` come together, or not at all.
+    pub fn new(
+        layout: &TransferLayout,
+        radiance: &Radiance,
+        visibility: Option<(&'a Visibility, &[f32])>,
+    ) -> Self {
+        let mut nodes: Vec<[f32; 7]> = radiance
             .direct
             .iter()
             .zip(&radiance.indirect)
-            .map(|(d, i)| [d[0], d[1], d[2], i[0], i[1], i[2]])
+            .enumerate()
+            .map(|(s, (d, i))| {
+                let v = visibility.map_or(0.0, |(_, nv)| nv[s]);
+                [d[0], d[1], d[2], i[0], i[1], i[2], v]
+            })
             .collect();
         // A missing corner's data reads as zero; the apron makes that rare inside the medium.
         let missing = nodes.len() as u32;
-        nodes.push([0.0; 6]);
+        nodes.push([0.0; 7]);
         let mut cells: HashMap<IVec3, [u32; 8]> = HashMap::with_capacity(layout.len() * 2);
         for (slot, v) in layout.voxels().iter().enumerate() {
             for n in 0..8 {
@@ -199,45 +221,55 @@ impl TransferRadiance {
             inv_k: 1.0 / layout.k as f32,
             nodes,
             cells,
+            visibility: visibility.map(|(v, _)| v),
         }
     }
 
     /// Moves the weights gathered in the current cell into the radiance sum.
     fn flush(&self, sum: &mut CellSum) {
         if let Some(slots) = sum.slots {
-            for (&slot, &w) in slots.iter().zip(&sum.weights) {
+            for ((&slot, &wd), &wi) in slots.iter().zip(&sum.direct).zip(&sum.indirect) {
                 let node = &self.nodes[slot as usize];
                 for ch in 0..3 {
-                    sum.radiance[0][ch] += w * node[ch];
-                    sum.radiance[1][ch] += w * node[3 + ch];
+                    sum.radiance[0][ch] += wd * node[ch];
+                    sum.radiance[1][ch] += wi * node[3 + ch];
                 }
             }
         }
-        sum.weights = [0.0; 8];
+        sum.direct = [0.0; 8];
+        sum.indirect = [0.0; 8];
     }
 }
 
 /// A ray's sum for [`TransferRadiance`]: the cell holding the last step, its corner records and
-/// the Σ c·(trilinear weight) of its steps per corner. A ray takes about K steps per transfer
-/// voxel, so the hash lookup and the 8 × 6 products with node data are paid once per cell
-/// crossed; a step adds only its eight weights.
-#[derive(Default)]
-pub struct CellSum {
+/// the Σ c·(trilinear weight) of its steps per corner, for the direct light (reshaped by V) and
+/// the indirect light. A ray takes about K steps per transfer voxel, so the hash lookup and the
+/// 8 × 6 products with node data are paid once per cell crossed; a step adds only its weights.
+pub struct CellSum<'a> {
     base: Option<IVec3>,
     slots: Option<[u32; 8]>,
-    weights: [f32; 8],
+    direct: [f32; 8],
+    indirect: [f32; 8],
     radiance: [[f32; 3]; 2],
+    visibility: Option<BrickSampler<'a>>,
 }
 
-impl InScatter for TransferRadiance {
-    type Sum = CellSum;
+impl<'a> InScatter for TransferRadiance<'a> {
+    type Sum = CellSum<'a>;
 
-    fn start(&self) -> CellSum {
-        CellSum::default()
+    fn start(&self) -> CellSum<'a> {
+        CellSum {
+            base: None,
+            slots: None,
+            direct: [0.0; 8],
+            indirect: [0.0; 8],
+            radiance: [[0.0; 3]; 2],
+            visibility: self.visibility.map(Visibility::sampler),
+        }
     }
 
     #[inline]
-    fn add(&self, p: Vec3, _rho: f32, c: f32, sum: &mut CellSum) {
+    fn add(&self, p: Vec3, rho: f32, c: f32, sum: &mut CellSum<'a>) {
         let q = p * self.inv_k;
         let (b, f) = floor_split(q);
         if sum.base != Some(b) {
@@ -248,15 +280,30 @@ impl InScatter for TransferRadiance {
         let g = Vec3::ONE - f;
         // Corner n has x = bit 2, y = bit 1, z = bit 0 (`corner`).
         let yz = [g.y * g.z, g.y * f.z, f.y * g.z, f.y * f.z];
-        let (cx0, cx1) = (c * g.x, c * f.x);
-        let (lo, hi) = sum.weights.split_at_mut(4);
-        for ((w0, w1), w) in lo.iter_mut().zip(hi).zip(yz) {
-            *w0 += cx0 * w;
-            *w1 += cx1 * w;
+        let mut w = [0.0f32; 8];
+        for (n, yz) in yz.into_iter().enumerate() {
+            w[n] = g.x * yz;
+            w[n + 4] = f.x * yz;
+        }
+        let mut cd = c;
+        if let (Some(sampler), Some(slots)) = (sum.visibility.as_mut(), sum.slots) {
+            let fitted: f32 = w
+                .iter()
+                .zip(slots)
+                .map(|(w, s)| w * self.nodes[s as usize][6])
+                .sum();
+            if fitted > MIN_FITTED_VISIBILITY && rho > 0.0 {
+                let fine = sampler.sample(p) / rho;
+                cd *= (fine / fitted).clamp(0.0, MAX_VISIBILITY_RATIO);
+            }
+        }
+        for n in 0..8 {
+            sum.direct[n] += cd * w[n];
+            sum.indirect[n] += c * w[n];
         }
     }
 
-    fn total(&self, mut sum: CellSum) -> [[f32; 3]; 2] {
+    fn total(&self, mut sum: CellSum<'a>) -> [[f32; 3]; 2] {
         self.flush(&mut sum);
         sum.radiance
     }

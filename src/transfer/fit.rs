@@ -178,6 +178,42 @@ fn row(density: &SparseGrid, layout: &TransferLayout, v: IVec3) -> Row {
     }
 }
 
+/// Least-squares node values of the field whose density-weighted values are `weighted` (ρ·f on
+/// the density's topology, as [`crate::volume::visibility::Visibility`] keeps V): each node's
+/// footprint mean of f over ρ·w_n, exact from the voxels, then [`least_squares`] as for T_ri.
+pub fn fitted_field(
+    density: &SparseGrid,
+    layout: &TransferLayout,
+    weighted: &SparseGrid,
+) -> Vec<f32> {
+    let k = layout.k;
+    let mut means: Vec<f32> = layout
+        .voxels()
+        .par_iter()
+        .map(|v| {
+            let c = *v * k;
+            let (mut num, mut den) = (0.0f64, 0.0f64);
+            for x in -k + 1..k {
+                for y in -k + 1..k {
+                    for z in -k + 1..k {
+                        let o = IVec3::new(x, y, z);
+                        let w = tent(o.as_vec3(), k) as f64;
+                        num += w * weighted.value(c + o).max(0.0) as f64;
+                        den += w * density.value(c + o).max(0.0) as f64;
+                    }
+                }
+            }
+            if den > 0.0 {
+                (num / den) as f32
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    least_squares(density, layout, &mut means, 1);
+    means
+}
+
 /// Least-squares node values from the footprint means `means` (`layout.len() × coeffs`, t̄_n per
 /// node; nodes without density keep theirs), in place.
 pub fn least_squares(

@@ -91,7 +91,7 @@ use glam::{IVec3, Vec3, Vec4};
 use rayon::prelude::*;
 
 use super::layout::TransferLayout;
-use super::{single, Medium};
+use super::Medium;
 use crate::volume::bricks::BrickSampler;
 use crate::volume::DensityField;
 
@@ -474,7 +474,7 @@ fn inflow(dirs: &Directions, lengths: &[f32], bands: usize) -> Vec<f32> {
     let mut sums = vec![0f64; dirs.len() * coeffs];
     let mut counts = vec![0usize; dirs.len()];
     let mut basis = vec![0f64; coeffs];
-    for w in single::fibonacci(INFLOW_QUADRATURE) {
+    for w in crate::math::sphere::fibonacci(INFLOW_QUADRATURE) {
         // Environment light from ω travels along −ω: line j carries ω when d_j is nearest −ω.
         let j = (0..units.len())
             .max_by(|&a, &b| units[a].dot(-w).total_cmp(&units[b].dot(-w)))

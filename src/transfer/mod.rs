@@ -4,6 +4,7 @@
 
 pub mod cache;
 mod fit;
+pub use fit::fitted_field;
 pub mod lattice;
 mod layout;
 pub mod memory;

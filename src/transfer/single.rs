@@ -88,21 +88,8 @@ struct DirectionSet {
     weights: Vec<f32>,
 }
 
-/// `n` points of the spherical Fibonacci lattice: equal-area, so each carries weight 4π/n.
-pub(crate) fn fibonacci(n: usize) -> Vec<Vec3> {
-    let golden = (1.0 + 5f64.sqrt()) / 2.0;
-    (0..n)
-        .map(|i| {
-            let z = 1.0 - (2.0 * i as f64 + 1.0) / n as f64;
-            let r = (1.0 - z * z).max(0.0).sqrt();
-            let phi = std::f64::consts::TAU * (i as f64 / golden).fract();
-            Vec3::new((r * phi.cos()) as f32, (r * phi.sin()) as f32, z as f32)
-        })
-        .collect()
-}
-
 fn direction_sets(samples: usize, bands: usize, seed: u64) -> Vec<DirectionSet> {
-    let base = fibonacci(samples);
+    let base = crate::math::sphere::fibonacci(samples);
     let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(seed);
     let coeffs = bands * bands;
     let w = (4.0 * std::f64::consts::PI / samples as f64) as f32;
@@ -262,14 +249,6 @@ pub fn bake_single(
 mod tests {
     use super::*;
     use crate::volume::DensityField;
-
-    #[test]
-    fn fibonacci_points_are_unit_and_balanced() {
-        let d = fibonacci(512);
-        assert!(d.iter().all(|v| (v.length() - 1.0).abs() < 1e-5));
-        let mean: Vec3 = d.iter().copied().sum::<Vec3>() / 512.0;
-        assert!(mean.length() < 1e-3, "mean {mean}");
-    }
 
     #[test]
     fn empty_space_projects_to_the_constant_one() {

@@ -10,6 +10,7 @@ mod sampler;
 pub mod shadow;
 pub(crate) mod transmittance;
 pub mod vdb;
+pub mod visibility;
 
 pub use field::DensityField;
 pub use grid::{SparseGrid, TileLevel, Transform};

@@ -368,7 +368,7 @@ fn transfer_radiance_interpolates_slots() {
             .collect(),
         indirect: vec![[0.25; 3]; layout.len()],
     };
-    let src = TransferRadiance::new(&layout, &radiance);
+    let src = TransferRadiance::new(&layout, &radiance, None);
     let at = |q: Vec3| {
         let mut sum = CellSum::default();
         src.add(q, 1.0, 1.0, &mut sum);
