@@ -297,9 +297,9 @@ impl<'a> InScatter for TransferRadiance<'a> {
                 cd *= (fine / fitted).clamp(0.0, MAX_VISIBILITY_RATIO);
             }
         }
-        for n in 0..8 {
-            sum.direct[n] += cd * w[n];
-            sum.indirect[n] += c * w[n];
+        for ((d, i), w) in sum.direct.iter_mut().zip(&mut sum.indirect).zip(w) {
+            *d += cd * w;
+            *i += c * w;
         }
     }
 

@@ -337,6 +337,7 @@ mod tests {
             &Light {
                 lighting: &lighting,
                 suns: &[],
+                shape: None,
             },
             Some(&bg),
             &cam,

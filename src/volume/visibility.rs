@@ -72,7 +72,7 @@ impl Visibility {
                 });
         }
         let mean = 1.0 / DIRECTIONS as f32;
-        let mut weighted = SparseGrid::new(grid.transform.clone(), 0.0);
+        let mut weighted = SparseGrid::new(grid.transform, 0.0);
         for (leaf, sums) in leaves.iter().zip(&leaf_sums) {
             let values = std::array::from_fn(|s| leaf.values[s].max(0.0) * sums[s] * mean);
             weighted.insert_leaf(leaf.origin, leaf.mask, values);
@@ -92,5 +92,70 @@ impl Visibility {
     /// Bytes held (the grid and its bricks).
     pub fn memory_bytes(&self) -> usize {
         self.weighted.memory_bytes() + self.bricks.memory_bytes()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::grid::{Transform, LEAF_DIM};
+    use glam::Vec3;
+
+    /// V at `p` in the cube of density 1 over voxels [0, n)³, whose trilinear density ends half a
+    /// voxel beyond its outer voxels: the mean of e^{−σt·d} over the same directions, d the exact
+    /// distance to that boundary.
+    fn cube_visibility(p: Vec3, n: f32, sigma_t: f32) -> f32 {
+        let lo = Vec3::splat(-0.5) - p;
+        let hi = Vec3::splat(n - 0.5) - p;
+        let mean: f32 = fibonacci(DIRECTIONS)
+            .iter()
+            .map(|d| {
+                let exit = |a: usize| match d[a] {
+                    x if x > 0.0 => hi[a] / x,
+                    x if x < 0.0 => lo[a] / x,
+                    _ => f32::INFINITY,
+                };
+                (-sigma_t * exit(0).min(exit(1)).min(exit(2))).exp()
+            })
+            .sum();
+        mean / DIRECTIONS as f32
+    }
+
+    #[test]
+    fn a_uniform_cube_sees_the_environment_through_its_exact_depths() {
+        // 4³ leaves of density 1: 32³ voxels.
+        let mut grid = SparseGrid::new(Transform::default(), 0.0);
+        for l in 0..64 {
+            let origin = IVec3::new(l / 16, (l / 4) % 4, l % 4) * LEAF_DIM;
+            grid.insert_leaf(origin, [u64::MAX; 8], [1.0; LEAF_VOXELS]);
+        }
+        let field = DensityField::new(grid);
+        let sigma_t = 0.1;
+        let v = Visibility::build(&field, sigma_t);
+        for p in [
+            IVec3::splat(16),
+            IVec3::new(0, 16, 16),
+            IVec3::new(3, 28, 9),
+            IVec3::splat(31),
+        ] {
+            let want = cube_visibility(p.as_vec3(), 32.0, sigma_t);
+            // ρ = 1, so the stored ρ·V is V.
+            let got = v.weighted.value(p);
+            assert!((got - want).abs() < 0.02 * want, "{p}: {got} vs {want}");
+        }
+        // Outside the medium nothing is stored: ρ·V is 0 there.
+        assert_eq!(v.weighted.value(IVec3::splat(40)), 0.0);
+    }
+
+    #[test]
+    fn a_tile_takes_the_visibility_of_its_centre() {
+        let mut grid = SparseGrid::new(Transform::default(), 0.0);
+        grid.insert_tile(TileLevel::Node, IVec3::ZERO, 0.5);
+        let field = DensityField::new(grid);
+        let v = Visibility::build(&field, 0.04);
+        // Density 0.5 at σt 0.04 is the unit cube of 128 at σt 0.02; the tile stores ρ·V.
+        let want = 0.5 * cube_visibility(Vec3::splat(64.0), 128.0, 0.02);
+        let got = v.weighted.value(IVec3::new(5, 100, 17));
+        assert!((got - want).abs() < 0.02 * want, "{got} vs {want}");
     }
 }

@@ -60,10 +60,16 @@ fn render_writes_an_exr_with_layers_and_a_png() {
         "--camera-pos",
         "-3,1,2",
         "--single-scatter",
+        "--stats",
     ];
     args.extend(QUICK_BAKE);
     let out = vscatter_in(dir.path(), &args);
     assert!(out.status.success(), "{}", stderr(&out));
+    // A single-scattering transfer is shaped by the density's visibility; the default one is not.
+    let single: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&out.stdout).trim()).unwrap();
+    assert!(single["visibility_bytes"].as_u64().unwrap() > 0, "{single}");
+    assert_eq!(stats["visibility_bytes"], 0);
     // A cache renders the same as the VDB it was baked from, with the same bake flags.
     let mut args = vec![
         "bake",

@@ -2,7 +2,9 @@
 
 use super::*;
 use crate::math::ray::Ray;
+use crate::render::relight::Radiance;
 use crate::volume::grid::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
+use crate::volume::visibility::Visibility;
 use crate::volume::{SparseGrid, Transform};
 use glam::IVec3;
 
@@ -370,7 +372,7 @@ fn transfer_radiance_interpolates_slots() {
     };
     let src = TransferRadiance::new(&layout, &radiance, None);
     let at = |q: Vec3| {
-        let mut sum = CellSum::default();
+        let mut sum = src.start();
         src.add(q, 1.0, 1.0, &mut sum);
         src.total(sum)
     };
@@ -406,7 +408,7 @@ fn transfer_radiance_interpolates_slots() {
         (points[1], 2.0),
         (points[0], 1.0),
     ];
-    let mut sum = CellSum::default();
+    let mut sum = src.start();
     steps
         .iter()
         .for_each(|&(q, c)| src.add(q, 1.0, c, &mut sum));
@@ -418,6 +420,59 @@ fn transfer_radiance_interpolates_slots() {
         d[0]
     );
     assert!((i[2] - 0.25 * 3.75).abs() < 1e-6);
+}
+
+#[test]
+fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution() {
+    // A 32³ cube at 12.8 optical depths across: V falls several-fold within a transfer voxel
+    // under its faces. Direct light equal to c × the fitted node values of V must come out as
+    // c × the fine V at any point, where plain interpolation gives a straight line.
+    let mut g = SparseGrid::new(Transform::default(), 0.0);
+    for l in 0..64 {
+        let origin = IVec3::new(l / 16, (l / 4) % 4, l % 4) * 8;
+        g.insert_leaf(origin, [u64::MAX; 8], [1.0; LEAF_VOXELS]);
+    }
+    let field = DensityField::new(g);
+    let layout = TransferLayout::build(&field.grid, 6);
+    let visibility = Visibility::build(&field, 0.4);
+    let fitted = crate::transfer::fitted_field(&field.grid, &layout, &visibility.weighted);
+    let c = 3.0;
+    let radiance = Radiance {
+        direct: fitted.iter().map(|v| [c * v; 3]).collect(),
+        indirect: vec![[0.5; 3]; layout.len()],
+    };
+    let shaped = TransferRadiance::new(&layout, &radiance, Some((&visibility, &fitted)));
+    let plain = TransferRadiance::new(&layout, &radiance, None);
+    let at = |src: &TransferRadiance, q: Vec3| {
+        let mut sum = src.start();
+        src.add(q, field.grid.sample_index(q), 1.0, &mut sum);
+        src.total(sum)
+    };
+    let mut plain_error = 0.0f32;
+    for q in [
+        Vec3::new(0.5, 16.0, 16.0),
+        Vec3::new(2.25, 13.5, 20.0),
+        Vec3::new(16.0, 16.0, 16.0),
+        Vec3::new(30.0, 4.5, 29.75),
+    ] {
+        let rho = field.grid.sample_index(q);
+        let mut sampler = visibility.sampler();
+        let fine = sampler.sample(q) / rho;
+        let [d, i] = at(&shaped, q);
+        assert!(
+            (d[0] - c * fine).abs() < 1e-4 * c,
+            "{q}: {} vs {}",
+            d[0],
+            c * fine
+        );
+        assert!(
+            (i[0] - 0.5).abs() < 1e-6,
+            "the indirect light is not reshaped"
+        );
+        plain_error = plain_error.max((at(&plain, q)[0][0] / (c * fine) - 1.0).abs());
+    }
+    // Without the shape the straight line between nodes misses the fall by far.
+    assert!(plain_error > 0.1, "{plain_error}");
 }
 
 #[test]
