@@ -54,6 +54,17 @@ pub struct Scene {
     shape: Mutex<Option<Arc<TransferShape>>>,
 }
 
+/// Whether `transfer` lit by `lighting` is shaped by the density's visibility: a single-scattering
+/// transfer under an environment that is not black (the suns alone need no transfer).
+fn needs_shape(transfer: &Transfer, lighting: &Lighting) -> bool {
+    transfer.lattice.is_none()
+        && lighting
+            .sh_coefficients(transfer.bands)
+            .iter()
+            .flatten()
+            .any(|&c| c != 0.0)
+}
+
 /// What the light of one render cost beyond relighting, for `--stats`.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct LightReport {
@@ -198,7 +209,7 @@ impl Scene {
         };
         let (lights, mut report) = self.sun_lights(transfer, lighting);
         let refs: Vec<&SunLight> = lights.iter().map(|l| l.as_ref()).collect();
-        let shape = self.shape(transfer, &mut report);
+        let shape = self.shape(transfer, lighting, &mut report);
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
         let (frame, stats, times) = render::render_volume(
@@ -217,9 +228,15 @@ impl Scene {
         Ok((frame, stats, times, report))
     }
 
-    /// The [`TransferShape`] of a single-scattering transfer: kept, or built now.
-    fn shape(&self, transfer: &Transfer, report: &mut LightReport) -> Option<Arc<TransferShape>> {
-        if transfer.lattice.is_some() {
+    /// The [`TransferShape`] of a single-scattering transfer lit by an environment: kept, or
+    /// built now.
+    fn shape(
+        &self,
+        transfer: &Transfer,
+        lighting: &Lighting,
+        report: &mut LightReport,
+    ) -> Option<Arc<TransferShape>> {
+        if !needs_shape(transfer, lighting) {
             return None;
         }
         let mut kept = self.shape.lock().unwrap_or_else(|e| e.into_inner());
@@ -236,13 +253,13 @@ impl Scene {
     /// a shadow volume and a fluence per transfer voxel for each sun not kept from an earlier
     /// render, and a single-scattering transfer's [`TransferShape`] unless kept.
     pub fn light_plan(&self, lighting: &Lighting) -> u64 {
-        self.shape_plan() + self.sun_plan(lighting)
+        self.shape_plan(lighting) + self.sun_plan(lighting)
     }
 
     /// The [`TransferShape`]'s share of [`Scene::light_plan`].
-    pub fn shape_plan(&self) -> u64 {
+    pub fn shape_plan(&self, lighting: &Lighting) -> u64 {
         match &self.transfer {
-            Some(t) if t.lattice.is_none() && self.shape.lock().is_ok_and(|s| s.is_none()) => {
+            Some(t) if needs_shape(t, lighting) && self.shape.lock().is_ok_and(|s| s.is_none()) => {
                 TransferShape::estimate_bytes(&self.field, t)
             }
             _ => 0,

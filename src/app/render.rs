@@ -550,7 +550,7 @@ fn sun_plan(scene: &Scene, lighting: &Lighting) -> String {
         lighting.suns.len(),
         HumanBytes(scene.sun_plan(lighting))
     );
-    let shape = scene.shape_plan();
+    let shape = scene.shape_plan(lighting);
     if shape > 0 {
         line += &format!(
             "; the visibility that shapes single scattering about {}",
