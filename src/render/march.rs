@@ -192,7 +192,7 @@ const MIN_FITTED_VISIBILITY: f32 = 1e-4;
 const MAX_VISIBILITY_RATIO: f32 = 4.0;
 
 impl<'a> TransferRadiance<'a> {
-    /// `node_visibility` (the fitted V per slot) and `visibility` come together, or not at all.
+    /// `visibility`: the density's V with its fitted value per slot (`None`: plain interpolation).
     pub fn new(
         layout: &TransferLayout,
         radiance: &Radiance,

@@ -191,23 +191,17 @@ pub fn fitted_field(
         .voxels()
         .par_iter()
         .map(|v| {
+            let (cells, cumulative) = footprint(density, k, *v);
+            let mass = cumulative.last().copied().unwrap_or(0.0);
+            if mass <= 0.0 {
+                return 0.0;
+            }
             let c = *v * k;
-            let (mut num, mut den) = (0.0f64, 0.0f64);
-            for x in -k + 1..k {
-                for y in -k + 1..k {
-                    for z in -k + 1..k {
-                        let o = IVec3::new(x, y, z);
-                        let w = tent(o.as_vec3(), k) as f64;
-                        num += w * weighted.value(c + o).max(0.0) as f64;
-                        den += w * density.value(c + o).max(0.0) as f64;
-                    }
-                }
-            }
-            if den > 0.0 {
-                (num / den) as f32
-            } else {
-                0.0
-            }
+            let sum: f64 = cells
+                .iter()
+                .map(|o| (tent(o.as_vec3(), k) * weighted.value(c + *o).max(0.0)) as f64)
+                .sum();
+            (sum / mass) as f32
         })
         .collect();
     least_squares(density, layout, &mut means, 1);

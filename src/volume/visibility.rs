@@ -31,20 +31,48 @@ pub struct Visibility {
     bricks: Bricks,
 }
 
+/// A leaf or an 8³ tile of the density: the blocks V is kept voxel by voxel in.
+enum Block<'g> {
+    Leaf(&'g Leaf),
+    Tile(IVec3, f32),
+}
+
+impl Block<'_> {
+    fn origin(&self) -> IVec3 {
+        match self {
+            Block::Leaf(l) => l.origin,
+            Block::Tile(o, _) => *o,
+        }
+    }
+
+    fn mask(&self) -> [u64; 8] {
+        match self {
+            Block::Leaf(l) => l.mask,
+            Block::Tile(..) => [u64::MAX; 8],
+        }
+    }
+
+    /// The density of voxel `slot`, 0 where it is inactive or not positive.
+    fn active_density(&self, slot: usize) -> f32 {
+        match self {
+            Block::Leaf(l) if l.is_active(slot) => l.values[slot].max(0.0),
+            Block::Leaf(_) => 0.0,
+            Block::Tile(_, v) => v.max(0.0),
+        }
+    }
+}
+
 impl Visibility {
     /// Sweeps V through `field` at extinction `sigma_t` per unit density.
     pub fn build(field: &DensityField, sigma_t: f32) -> Visibility {
         let grid = &field.grid;
         // Leaves and 8³ tiles alike, voxel by voxel: an 8³ tile often lies under a surface, where
         // V changes across it. Larger tiles take the value at their centre.
-        let blocks: Vec<Leaf> = grid
+        let blocks: Vec<Block> = grid
             .leaves()
             .iter()
-            .cloned()
-            .chain(
-                grid.tiles(TileLevel::Block)
-                    .map(|(o, v)| Leaf::new(o, [u64::MAX; 8], [v; LEAF_VOXELS], 0.0)),
-            )
+            .map(Block::Leaf)
+            .chain(grid.tiles(TileLevel::Block).map(|(o, v)| Block::Tile(o, v)))
             .collect();
         let tiles: Vec<(TileLevel, IVec3, f32, IVec3)> = [TileLevel::Node, TileLevel::Root]
             .into_iter()
@@ -53,40 +81,43 @@ impl Visibility {
                 grid.tiles(level).map(move |(o, v)| (level, o, v, o + half))
             })
             .collect();
-        let mut block_sums = vec![[0.0f32; LEAF_VOXELS]; blocks.len()];
-        let mut tile_sums = vec![0.0f32; tiles.len()];
+        // ρ·V accumulates in place, a direction at a time: the result and one shadow volume are
+        // all the build holds.
+        let share = 1.0 / DIRECTIONS as f32;
+        let mut block_values = vec![[0.0f32; LEAF_VOXELS]; blocks.len()];
+        let mut tile_values = vec![0.0f32; tiles.len()];
         for d in fibonacci(DIRECTIONS) {
             let volume = ShadowVolume::build(field, sigma_t, d);
-            block_sums
+            block_values
                 .par_iter_mut()
                 .zip(&blocks)
-                .for_each(|(sums, block)| {
+                .for_each(|(values, block)| {
                     let mut cursor = ShadowCursor::default();
-                    for (slot, s) in sums.iter_mut().enumerate() {
-                        if block.is_active(slot) {
+                    for (slot, value) in values.iter_mut().enumerate() {
+                        let rho = block.active_density(slot);
+                        if rho > 0.0 {
                             let tau = volume
-                                .core_value(block.origin + slot_offset(slot), &mut cursor)
+                                .core_value(block.origin() + slot_offset(slot), &mut cursor)
                                 .unwrap_or(0.0);
-                            *s += (-tau).exp();
+                            *value += rho * share * (-tau).exp();
                         }
                     }
                 });
-            tile_sums
+            tile_values
                 .par_iter_mut()
                 .zip(&tiles)
-                .for_each(|(s, (_, _, _, centre))| {
+                .for_each(|(value, (_, _, rho, centre))| {
                     let mut cursor = ShadowCursor::default();
-                    *s += (-volume.core_value(*centre, &mut cursor).unwrap_or(0.0)).exp();
+                    let tau = volume.core_value(*centre, &mut cursor).unwrap_or(0.0);
+                    *value += rho.max(0.0) * share * (-tau).exp();
                 });
         }
-        let mean = 1.0 / DIRECTIONS as f32;
         let mut weighted = SparseGrid::new(grid.transform, 0.0);
-        for (block, sums) in blocks.iter().zip(&block_sums) {
-            let values = std::array::from_fn(|s| block.values[s].max(0.0) * sums[s] * mean);
-            weighted.insert_leaf(block.origin, block.mask, values);
+        for (block, values) in blocks.iter().zip(block_values) {
+            weighted.insert_leaf(block.origin(), block.mask(), values);
         }
-        for ((level, origin, rho, _), s) in tiles.iter().zip(&tile_sums) {
-            weighted.insert_tile(*level, *origin, rho.max(0.0) * s * mean);
+        for ((level, origin, _, _), value) in tiles.iter().zip(tile_values) {
+            weighted.insert_tile(*level, *origin, value);
         }
         let bricks = Bricks::build(&weighted);
         Visibility { weighted, bricks }
@@ -155,12 +186,16 @@ mod tests {
         assert_eq!(v.weighted.value(IVec3::splat(40)), 0.0);
     }
 
+    /// The visibility of one tile at the origin.
+    fn of_tile(level: TileLevel, value: f32, sigma_t: f32) -> Visibility {
+        let mut grid = SparseGrid::new(Transform::default(), 0.0);
+        grid.insert_tile(level, IVec3::ZERO, value);
+        Visibility::build(&DensityField::new(grid), sigma_t)
+    }
+
     #[test]
     fn an_8_cubed_tile_is_resolved_voxel_by_voxel() {
-        let mut grid = SparseGrid::new(Transform::default(), 0.0);
-        grid.insert_tile(TileLevel::Block, IVec3::ZERO, 1.0);
-        let field = DensityField::new(grid);
-        let v = Visibility::build(&field, 0.3);
+        let v = of_tile(TileLevel::Block, 1.0, 0.3);
         // At a corner the sweep resamples its depths bilinearly across the cube's edges, where
         // the depth has a kink: 3.5 % there, under 2 % inside.
         for (p, tolerance) in [
@@ -179,10 +214,7 @@ mod tests {
 
     #[test]
     fn a_large_tile_takes_the_visibility_of_its_centre() {
-        let mut grid = SparseGrid::new(Transform::default(), 0.0);
-        grid.insert_tile(TileLevel::Node, IVec3::ZERO, 0.5);
-        let field = DensityField::new(grid);
-        let v = Visibility::build(&field, 0.04);
+        let v = of_tile(TileLevel::Node, 0.5, 0.04);
         // Density 0.5 at σt 0.04 is the unit cube of 128 at σt 0.02; the tile stores ρ·V.
         let want = 0.5 * cube_visibility(Vec3::splat(64.0), 128.0, 0.02);
         let got = v.weighted.value(IVec3::new(5, 100, 17));
