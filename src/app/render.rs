@@ -25,7 +25,7 @@ use vscatter::scene::{self, BakeConfig, Scene, TraceSettings};
 use vscatter::sequence::Frame as SequenceFrame;
 use vscatter::sequence::{self, FramePattern};
 use vscatter::transfer::cache::Source;
-use vscatter::transfer::memory::check_sun_budget;
+use vscatter::transfer::memory::RenderEstimate;
 use vscatter::{Error, Result};
 
 pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
@@ -496,19 +496,23 @@ fn transfer(
         stats["bake_seconds"] = json!(clock.elapsed().as_secs_f64());
     }
     let from_cache = stats["bake"].is_null();
+    let estimate = RenderEstimate::new(
+        &scene.field,
+        scene.transfer.as_ref().map_or(0, |t| t.layout.len()),
+        scene
+            .transfer
+            .as_ref()
+            .map_or(0, |t| t.t_ri.len() + t.f_ms.len()),
+        scene.light_plan(view.lighting),
+        (view.camera.width, view.camera.height),
+    );
     if args.bake.dry_run {
         warn(&scene.warnings(Some(config.settings.scale)));
         println!("{}", sun_plan(scene, view.lighting));
+        println!("render: {}", estimate.describe());
         return Ok(None);
     }
-    let sun_bytes = scene.light_plan(view.lighting);
-    let held = scene.field.grid.memory_bytes() as u64
-        + scene.field.accelerator_bytes() as u64
-        + scene
-            .transfer
-            .as_ref()
-            .map_or(0, |t| (t.t_ri.len() + t.f_ms.len()) as u64 * 4);
-    check_sun_budget(sun_bytes, held, config.max_memory)?;
+    estimate.check_budget(config.max_memory)?;
     // Warnings after the last refusal, so an error stays one line (a bake warned already).
     if from_cache {
         warn(&scene.warnings(Some(config.settings.scale)));

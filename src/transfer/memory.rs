@@ -1,4 +1,4 @@
-//! How much memory a bake (and a render's suns) will take, estimated before anything big is
+//! How much memory a bake or a render will take, estimated before anything big is
 //! allocated, and the budget checks that refuse work too large for the machine — naming the
 //! settings that would fit.
 
@@ -222,18 +222,79 @@ impl BakePlan {
     }
 }
 
-/// Refuses a render whose suns' shadow volumes and fluences (`sun_bytes`), beside the density
-/// and transfer it holds (`held`), are estimated above `limit` (`None`: [`default_limit`]).
-pub fn check_sun_budget(sun_bytes: u64, held: u64, limit: Option<u64>) -> Result<()> {
-    let limit = limit.or_else(default_limit);
-    match limit.filter(|l| sun_bytes + held > *l) {
-        None => Ok(()),
-        Some(limit) => Err(Error::Runtime(format!(
-            "the suns' shadow volumes need about {} beside the {} the volume holds, but the render may use {} (--max-memory); fewer suns, or a volume with fewer active voxels, would fit",
-            human(sun_bytes),
-            human(held),
-            human(limit)
-        ))),
+/// Bytes per transfer voxel a render holds beside T_ri and F_ms: the relit direct and indirect
+/// RGB (24), the march's node records (7 f32, 28) and its share of the interpolation cells' hash
+/// map (about 1.3 cells per voxel in a table sized for two, 12 + 32 bytes and a control byte
+/// each, at most 7/8 full: ≈ 105).
+const RENDER_BYTES_PER_TRANSFER_VOXEL: u64 = 24 + 28 + 105;
+/// Bytes per pixel of a frame: RGBA, the direct and indirect RGB layers and depth, f32 each.
+const FRAME_BYTES_PER_PIXEL: u64 = 4 * (4 + 3 + 3 + 1);
+
+/// Peak memory of a render, estimated before the light and the frame are allocated.
+#[derive(Debug, Clone, Copy)]
+pub struct RenderEstimate {
+    /// The density and its accelerators.
+    pub volume: u64,
+    /// T_ri and F_ms (f32) and what relighting and the march keep per transfer voxel.
+    pub transfer: u64,
+    /// The suns' shadow volumes and fluences and a single-scattering transfer's visibility, where
+    /// not kept from an earlier render.
+    pub light: u64,
+    /// The frame's buffers.
+    pub image: u64,
+}
+
+impl RenderEstimate {
+    /// `coefficients`: T_ri and F_ms values held; `light`: [`crate::scene::Scene::light_plan`].
+    pub fn new(
+        field: &DensityField,
+        transfer_voxels: usize,
+        coefficients: usize,
+        light: u64,
+        (width, height): (u32, u32),
+    ) -> RenderEstimate {
+        RenderEstimate {
+            volume: (field.grid.memory_bytes() + field.accelerator_bytes()) as u64,
+            transfer: coefficients as u64 * 4
+                + transfer_voxels as u64 * RENDER_BYTES_PER_TRANSFER_VOXEL,
+            light,
+            image: width as u64 * height as u64 * FRAME_BYTES_PER_PIXEL,
+        }
+    }
+
+    /// The estimated peak resident memory, the process's own baseline included.
+    pub fn total(&self) -> u64 {
+        PROCESS_BASELINE + self.volume + self.transfer + self.light + self.image
+    }
+
+    /// One line for `--dry-run`.
+    pub fn describe(&self) -> String {
+        format!(
+            "estimated peak memory {} (volume {}, transfer {}, suns and visibility {}, image {})",
+            human(self.total()),
+            human(self.volume),
+            human(self.transfer),
+            human(self.light),
+            human(self.image)
+        )
+    }
+
+    /// Refuses the render if its estimate is above `limit` (`None`: [`default_limit`]), naming
+    /// what would fit.
+    pub fn check_budget(&self, limit: Option<u64>) -> Result<()> {
+        let limit = limit.or_else(default_limit);
+        match limit.filter(|l| self.total() > *l) {
+            None => Ok(()),
+            Some(limit) => Err(Error::Runtime(format!(
+                "this render needs about {} (the volume {}, its transfer {}, suns and visibility {}, the image {}) but may use {} (--max-memory); fewer suns, a smaller --res, or a volume with fewer active voxels would fit",
+                human(self.total()),
+                human(self.volume),
+                human(self.transfer),
+                human(self.light),
+                human(self.image),
+                human(limit)
+            ))),
+        }
     }
 }
 

@@ -131,26 +131,26 @@ fn dry_run_counts_the_shadow_volumes_and_the_budget_refuses_them() {
         stdout.contains("2 suns: shadow volumes and fluences about"),
         "{stdout}"
     );
-    // From a cache (so the bake's own budget is not what refuses): the suns' part is refused.
+    // From a cache (so the bake's own budget is not what refuses): the render's whole peak is
+    // estimated, its image at 44 bytes a pixel (48 × 27 × 44 = 57 024 B), and refused.
     let input = fixture("cloud.vdb");
     let mut bake = vec!["bake", input.to_str().unwrap(), "-o", "c.vtc"];
     bake.extend_from_slice(&QUICK[2..]);
     bake.extend_from_slice(&QUICK_BAKE);
     assert!(vscatter_in(dir.path(), &bake).status.success());
-    let args = [
-        "render",
-        "c.vtc",
-        "-o",
-        "x.png",
-        "--res",
-        "48x27",
-        "--max-memory",
-        "5M",
-    ];
+    let args = ["render", "c.vtc", "-o", "x.png", "--res", "48x27"];
+    let dry = vscatter_in(dir.path(), &[&args[..], &["--dry-run"]].concat());
+    let stdout = String::from_utf8_lossy(&dry.stdout);
+    assert!(
+        dry.status.success() && stdout.contains("render: estimated peak memory"),
+        "{stdout}{}",
+        stderr(&dry)
+    );
+    assert!(stdout.contains("image 55.69 KiB)"), "{stdout}");
     assert_clean_failure(
-        &vscatter_in(dir.path(), &args),
+        &vscatter_in(dir.path(), &[&args[..], &["--max-memory", "5M"]].concat()),
         1,
-        "shadow volumes need about",
+        "this render needs about",
     );
     assert!(!dir.path().join("x.png").exists());
 }
