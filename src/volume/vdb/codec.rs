@@ -232,7 +232,16 @@ pub fn decode_block(
         )));
     }
     let half = fmt.half && fmt.scalar.is_float();
-    out.extend(raw.chunks_exact(elem).map(|b| fmt.decode_value(b, half)));
+    // The common case, f32 scalars, in bulk: the general path's per-value dispatch was a fifth
+    // of `info`'s time on a 21 M-voxel cloud.
+    if !half && fmt.components == 1 && fmt.scalar == Scalar::F32 {
+        out.extend(
+            raw.chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+        );
+    } else {
+        out.extend(raw.chunks_exact(elem).map(|b| fmt.decode_value(b, half)));
+    }
     Ok(())
 }
 
@@ -382,14 +391,33 @@ fn read_streams(
 /// Blosc's byte shuffle undone: byte j of element i was stored at j·m + i (m whole elements);
 /// a tail shorter than one element is stored as it is.
 fn unshuffle(streams: &[u8], typesize: usize, dst: &mut [u8]) {
-    let (n, m) = (dst.len(), dst.len() / typesize);
-    for i in 0..m {
-        for j in 0..typesize {
-            dst[i * typesize + j] = streams[j * m + i];
+    match typesize {
+        2 => unshuffle_by::<2>(streams, dst),
+        4 => unshuffle_by::<4>(streams, dst),
+        8 => unshuffle_by::<8>(streams, dst),
+        _ => {
+            let m = dst.len() / typesize;
+            for i in 0..m {
+                for j in 0..typesize {
+                    dst[i * typesize + j] = streams[j * m + i];
+                }
+            }
         }
     }
-    let tail = m * typesize;
+    let (n, tail) = (dst.len(), dst.len() / typesize * typesize);
     dst[tail..].copy_from_slice(&streams[tail..n]);
+}
+
+/// [`unshuffle`] for a width known at compile time: whole elements written at once and the
+/// planes' bounds checked once, where the general loop checks every byte.
+fn unshuffle_by<const W: usize>(streams: &[u8], dst: &mut [u8]) {
+    let m = dst.len() / W;
+    let planes: [&[u8]; W] = std::array::from_fn(|j| &streams[j * m..(j + 1) * m]);
+    for (i, out) in dst.chunks_exact_mut(W).enumerate() {
+        for (j, o) in out.iter_mut().enumerate() {
+            *o = planes[j][i];
+        }
+    }
 }
 
 #[cfg(test)]
@@ -493,5 +521,26 @@ mod tests {
         bytes.extend((-4i64).to_le_bytes());
         bytes.extend([0u8; 4]);
         assert!(parse_block(&mut Cursor::new(&bytes), 8, 8, &f).is_err());
+    }
+
+    #[test]
+    fn unshuffle_inverts_blosc_byte_shuffle_at_every_width() {
+        // Blosc's shuffle: byte j of element i goes to plane j at i; a tail shorter than one
+        // element stays as it is.
+        for typesize in [1, 2, 3, 4, 8] {
+            let data: Vec<u8> = (0..(7 * typesize + typesize / 2) as u32)
+                .map(|v| (v * 37 % 251) as u8)
+                .collect();
+            let m = data.len() / typesize;
+            let mut streams = data.clone();
+            for i in 0..m {
+                for j in 0..typesize {
+                    streams[j * m + i] = data[i * typesize + j];
+                }
+            }
+            let mut out = vec![0u8; data.len()];
+            unshuffle(&streams, typesize, &mut out);
+            assert_eq!(out, data, "typesize {typesize}");
+        }
     }
 }
