@@ -15,7 +15,7 @@ use crate::light::Lighting;
 use crate::pathtrace::{Medium3d, PathStats, PathTracer};
 use crate::render::sunlight::SunLight;
 use crate::render::{
-    self, Background, Camera, CameraSpec, Frame, MarchSettings, MarchStats, TransferShape,
+    self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows, TransferShape,
 };
 use crate::transfer::cache::{self, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
@@ -192,16 +192,18 @@ impl Scene {
         spec.camera(render::framing_bounds(&self.field.grid))
     }
 
-    /// Relights the transfer under `lighting` and marches it as `camera` sees it, with the
-    /// environment behind the volume unless `background` is false.
-    pub fn render(
+    /// Relights the transfer under `lighting` and hands `consume` its march as `camera` sees it,
+    /// row by row ([`render::render_volume`]), with the environment behind the volume unless
+    /// `background` is false.
+    pub fn render<R>(
         &self,
         camera: &Camera,
         lighting: &Lighting,
         background: bool,
         settings: &MarchSettings,
         progress: &ProgressBar,
-    ) -> Result<(Frame, MarchStats, render::RenderReport, LightReport)> {
+        consume: impl FnOnce(&mut Rows) -> R,
+    ) -> Result<(R, MarchStats, render::RenderReport, LightReport)> {
         let Some(transfer) = &self.transfer else {
             return Err(crate::Error::Runtime(
                 "the scene has no transfer: bake it first".into(),
@@ -212,7 +214,7 @@ impl Scene {
         let shape = self.shape(transfer, lighting, &mut report);
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
-        let (frame, stats, times) = render::render_volume(
+        let (out, stats, times) = render::render_volume(
             &self.field,
             transfer,
             &render::Light {
@@ -224,8 +226,9 @@ impl Scene {
             camera,
             settings,
             progress,
+            consume,
         );
-        Ok((frame, stats, times, report))
+        Ok((out, stats, times, report))
     }
 
     /// The [`TransferShape`] of a single-scattering transfer lit by an environment: kept, or
@@ -268,18 +271,33 @@ impl Scene {
 
     /// The suns' share of [`Scene::light_plan`].
     pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
-        let kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
         let per_sun = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid)
             + self
                 .transfer
                 .as_ref()
                 .map_or(0, |t| t.layout.len() as u64 * 4);
-        let new = lighting
+        self.new_suns(lighting) as u64 * per_sun
+    }
+
+    /// The working memory of a new sun's multiple-scattering solve, while it runs (one at a
+    /// time): 0 when every sun is kept or the transfer has no lattice.
+    pub fn sun_solve_plan(&self, lighting: &Lighting) -> u64 {
+        match &self.transfer {
+            Some(t) if self.new_suns(lighting) > 0 => t.lattice.map_or(0, |kind| {
+                crate::transfer::memory::sun_solve_bytes(t.layout.len(), kind.directions())
+            }),
+            _ => 0,
+        }
+    }
+
+    /// How many of `lighting.suns` have no light kept from an earlier render.
+    fn new_suns(&self, lighting: &Lighting) -> usize {
+        let kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
+        lighting
             .suns
             .iter()
             .filter(|s| !kept.iter().any(|l| l.is_for(s.direction, self.medium)))
-            .count() as u64;
-        new * per_sun
+            .count()
     }
 
     /// Drops the kept suns' light: it was built on the transfer now replaced.
@@ -321,15 +339,17 @@ impl Scene {
         (lights, report)
     }
 
-    /// Path-traces the density under `lighting`: the ground truth the transfer is measured against.
-    pub fn pathtrace(
+    /// Path-traces the density under `lighting`, handing `consume` the image row by row: the
+    /// ground truth the transfer is measured against.
+    pub fn pathtrace<R>(
         &self,
         camera: &Camera,
         lighting: &Lighting,
         background: bool,
         trace: &TraceSettings,
         progress: &ProgressBar,
-    ) -> (Frame, PathStats) {
+        consume: impl FnOnce(&mut Rows) -> R,
+    ) -> (R, PathStats) {
         let light = lighting.sampler();
         let tracer = PathTracer {
             medium: Medium3d {
@@ -344,9 +364,20 @@ impl Scene {
         };
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
-        render::film::render_frame(camera, trace.spp, background, progress, |sample, stats| {
-            tracer.trace(sample, stats)
-        })
+        let mut stats = PathStats::default();
+        let out = consume(&mut |rows| {
+            let (frame, s) = render::film::render_rows(
+                camera,
+                trace.spp,
+                background,
+                progress,
+                rows,
+                |sample, st| tracer.trace(sample, st),
+            );
+            stats += s;
+            frame
+        });
+        (out, stats)
     }
 }
 

@@ -5,7 +5,7 @@
 //! it, so a rerun of a sequence skips the images that are current.
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 use indicatif::{HumanBytes, ProgressBar};
@@ -15,17 +15,17 @@ use super::args::{GlobalArgs, Method, RenderArgs, SequenceArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
 use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
-use vscatter::io::image::{read_fingerprint, WriteOptions};
+use vscatter::io::image::{read_fingerprint, write_bands, WriteOptions};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress;
 use vscatter::light::Lighting;
 use vscatter::render::motion::Motion;
-use vscatter::render::{framing_bounds, Camera, CameraSpec, Frame, MarchSettings};
+use vscatter::render::{band_rows, framing_bounds, Camera, CameraSpec, MarchSettings, Rows};
 use vscatter::scene::{self, BakeConfig, Scene, TraceSettings};
 use vscatter::sequence::Frame as SequenceFrame;
 use vscatter::sequence::{self, FramePattern};
 use vscatter::transfer::cache::Source;
-use vscatter::transfer::memory::RenderEstimate;
+use vscatter::transfer::memory::{self, RenderEstimate};
 use vscatter::{Error, Result};
 
 pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
@@ -399,31 +399,60 @@ impl Job<'_> {
                 lighting,
                 background: !args.no_background,
                 spp: self.spp,
+                png: outputs[e]
+                    .extension()
+                    .is_some_and(|x| x.eq_ignore_ascii_case("png")),
                 bar: progress::bar(0, "render", global.quiet),
             };
             phase(&format!(
                 "render under {}",
                 sequence::map_name(&shot.envs[e])
             ));
-            let frame = match args.method {
-                Method::Pathtrace => pathtrace(&scene, args, &view, &mut stats),
-                Method::Transfer => {
-                    match transfer(&mut scene, args, self.config, &view, global, &mut stats)? {
-                        Some(frame) => frame,
-                        // --dry-run: the estimate is printed, nothing is rendered.
-                        None => return Ok(Made::Planned),
-                    }
-                }
-            };
-            view.bar.finish_and_clear();
-            phase("write");
-            let clock = Instant::now();
             let options = WriteOptions {
                 fingerprint: prints.get(e).copied(),
                 ..args.write_options()
             };
-            frame.into_image().write(&outputs[e], &options)?;
-            stats["write_seconds"] = json!(clock.elapsed().as_secs_f64());
+            // The image is written band by band as it is rendered; the write's time is what of
+            // it is not rendering.
+            let (mut rendering, mut writing) = (Duration::ZERO, Duration::ZERO);
+            let write = |rows: &mut Rows| -> Result<()> {
+                let clock = Instant::now();
+                let written = write_bands(
+                    &outputs[e],
+                    &options,
+                    camera.height as usize,
+                    band_rows(camera.width) as usize,
+                    &mut |r| {
+                        let t = Instant::now();
+                        let frame = rows(r.start as u32..r.end as u32);
+                        rendering += t.elapsed();
+                        Ok(frame.into_image())
+                    },
+                );
+                writing = clock.elapsed();
+                written
+            };
+            match args.method {
+                Method::Pathtrace => pathtrace(&scene, args, &view, &mut stats, write)?,
+                Method::Transfer => {
+                    if transfer(
+                        &mut scene,
+                        args,
+                        self.config,
+                        &view,
+                        global,
+                        &mut stats,
+                        write,
+                    )?
+                    .is_none()
+                    {
+                        // --dry-run: the estimate is printed, nothing is rendered.
+                        return Ok(Made::Planned);
+                    }
+                }
+            }
+            view.bar.finish_and_clear();
+            stats["write_seconds"] = json!(writing.saturating_sub(rendering).as_secs_f64());
             if global.stats {
                 stats["peak_memory_bytes"] = json!(peak_memory());
                 println!("{stats}");
@@ -439,11 +468,20 @@ struct View<'a> {
     lighting: &'a Lighting,
     background: bool,
     spp: u32,
+    /// The image is a PNG (else an EXR): what its write holds differs.
+    png: bool,
     bar: ProgressBar,
 }
 
-/// `--method pathtrace`: the density (of a VDB, or of a cache with its medium) path-traced.
-fn pathtrace(scene: &Scene, args: &RenderArgs, view: &View, stats: &mut Value) -> Frame {
+/// `--method pathtrace`: the density (of a VDB, or of a cache with its medium) path-traced, each
+/// band of rows handed to `write`.
+fn pathtrace(
+    scene: &Scene,
+    args: &RenderArgs,
+    view: &View,
+    stats: &mut Value,
+    write: impl FnOnce(&mut Rows) -> Result<()>,
+) -> Result<()> {
     let trace = TraceSettings {
         spp: view.spp,
         max_bounces: args.max_bounces.unwrap_or(u32::MAX),
@@ -451,12 +489,13 @@ fn pathtrace(scene: &Scene, args: &RenderArgs, view: &View, stats: &mut Value) -
     };
     warn(&scene.warnings(None));
     let clock = Instant::now();
-    let (frame, path_stats) = scene.pathtrace(
+    let (written, path_stats) = scene.pathtrace(
         view.camera,
         view.lighting,
         view.background,
         &trace,
         &view.bar,
+        write,
     );
     stats["method"] = json!("pathtrace");
     stats["trace_seconds"] = json!(clock.elapsed().as_secs_f64());
@@ -464,11 +503,11 @@ fn pathtrace(scene: &Scene, args: &RenderArgs, view: &View, stats: &mut Value) -
     stats["paths"] = json!(path_stats.paths);
     stats["scatterings"] = json!(path_stats.scatterings);
     stats["density_lookups"] = json!(path_stats.lookups);
-    frame
+    written
 }
 
 /// `--method transfer`: the cache's transfer, a kept bake's, or a fresh bake (kept when asked),
-/// relit and marched; `None` for a dry run.
+/// relit and marched, each band of rows handed to `write`; `None` for a dry run.
 fn transfer(
     scene: &mut Scene,
     args: &RenderArgs,
@@ -476,7 +515,8 @@ fn transfer(
     view: &View,
     global: &GlobalArgs,
     stats: &mut Value,
-) -> Result<Option<Frame>> {
+    write: impl FnOnce(&mut Rows) -> Result<()>,
+) -> Result<Option<()>> {
     if let Some(cache) = &args.cache {
         if scene.reuse_cache(cache, config)? && !global.quiet {
             eprintln!("using cache {}", cache.display());
@@ -504,7 +544,8 @@ fn transfer(
             .as_ref()
             .map_or(0, |t| t.t_ri.len() + t.f_ms.len()),
         scene.light_plan(view.lighting),
-        (view.camera.width, view.camera.height),
+        scene.sun_solve_plan(view.lighting),
+        memory::image_bytes(view.camera.width, view.camera.height, view.png),
     );
     if args.bake.dry_run {
         warn(&scene.warnings(Some(config.settings.scale)));
@@ -521,13 +562,15 @@ fn transfer(
         spp: view.spp,
         ..MarchSettings::default()
     };
-    let (frame, march, report, suns) = scene.render(
+    let (written, march, report, suns) = scene.render(
         view.camera,
         view.lighting,
         view.background,
         &settings,
         &view.bar,
+        write,
     )?;
+    written?;
     stats["method"] = json!("transfer");
     stats["transfer_voxels"] = json!(scene.transfer.as_ref().map(|t| t.layout.len()));
     stats["env_seconds"] =
@@ -543,7 +586,7 @@ fn transfer(
     stats["rays"] = json!(march.rays);
     stats["samples_taken"] = json!(march.samples_taken);
     stats["samples_skipped"] = json!(march.samples_skipped);
-    Ok(Some(frame))
+    Ok(Some(()))
 }
 
 /// What the suns (and a single-scattering transfer's visibility) will hold, for `--dry-run`: one

@@ -2,6 +2,7 @@
 //! (f32 or half, every channel kept) or as a tonemapped 8-bit sRGB PNG — always atomically.
 
 use std::io::{self, BufWriter, Seek, Write};
+use std::ops::Range;
 use std::path::Path;
 
 use exr::block::chunk::Chunk;
@@ -133,20 +134,15 @@ impl ImageBuf {
     }
 
     /// Writes EXR or PNG according to the extension of `path` (case-insensitive). Consumes the
-    /// image: the EXR writer takes its channels over instead of copying them (a 1080p render
-    /// carries eleven 8 MB float planes).
+    /// image: the EXR writer reads its channels in place instead of copying them.
     pub fn write(self, path: &Path, options: &WriteOptions) -> Result<()> {
-        let ext = path
-            .extension()
-            .map(|e| e.to_string_lossy().to_ascii_lowercase());
-        match ext.as_deref() {
-            Some("exr") => self.write_exr(path, options.precision, options.fingerprint),
-            Some("png") => self.write_png(path, options.exposure, options.fingerprint),
-            _ => Err(Error::usage(format!(
-                "{}: output must end in .exr or .png",
-                path.display()
-            ))),
-        }
+        let height = self.height;
+        let mut whole = Some(self);
+        write_bands(path, options, height, height, &mut |_| {
+            whole
+                .take()
+                .ok_or_else(|| Error::Runtime("an image asked for twice".into()))
+        })
     }
 
     /// Checks the buffer sizes, so a caller's mistake is an error instead of a corrupt file.
@@ -186,80 +182,19 @@ impl ImageBuf {
         Ok(())
     }
 
-    /// Writes a single-part scanline EXR, RLE-compressed, with channels R, G, B, A and every
-    /// layer's.
-    ///
-    /// Through the `exr` crate's block interface rather than its image writer: scanline blocks
-    /// are assembled from the buffers in place and compressed in parallel, [`EXR_BATCH_LINES`] at
-    /// a time, while the previous batch is written out. The image writer extracts every line on
-    /// one thread, which made a 1080p frame's write a quarter of the render's wall time.
-    pub fn write_exr(
-        self,
-        path: &Path,
-        precision: ExrPrecision,
-        fingerprint: Option<u64>,
-    ) -> Result<()> {
+    /// Checks that `self`, asked for as rows `rows` of an image whose first band is `first`, fits
+    /// it: as wide, as many rows as asked, the same layers.
+    fn check_band(self, first: (usize, &[(&str, &[&str])]), rows: &Range<usize>) -> Result<Self> {
         self.check()?;
-        let (width, height) = (self.width, self.height);
-        let views = self.channel_views();
-        let sample_type = match precision {
-            ExrPrecision::Float => SampleType::F32,
-            ExrPrecision::Half => SampleType::F16,
-        };
-        let channels = views
-            .iter()
-            .map(|v| ChannelDescription::named(v.name.as_str(), sample_type))
-            .collect();
-        // RLE: lossless and several times faster to write than ZIP on 1080p frames with eleven
-        // float channels (ZIP took 0.6–1.1 s, as long as the march); compositors read both.
-        let header = Header::new(Text::default(), (width, height), channels)
-            .with_encoding(
-                Compression::RLE,
-                BlockDescription::ScanLines,
-                LineOrder::Increasing,
-            )
-            .with_attributes(layer_attributes(fingerprint));
-        write_atomic(path, |w: &mut BufWriter<std::fs::File>| {
-            exr::block::write(w, SmallVec::from_elem(header, 1), true, |meta, chunks| {
-                let blocks: Vec<(usize, BlockIndex)> =
-                    enumerate_ordered_header_block_indices(&meta.headers).collect();
-                let per_batch =
-                    EXR_BATCH_LINES.div_ceil(meta.headers[0].compression.scan_lines_per_block());
-                let compress = |batch: &[(usize, BlockIndex)]| -> Vec<(usize, _)> {
-                    batch
-                        .par_iter()
-                        .map(|&(i, index)| {
-                            let block = UncompressedBlock {
-                                index,
-                                data: block_bytes(&views, width, precision, &index),
-                            };
-                            (i, block.compress_to_chunk(&meta.headers))
-                        })
-                        .collect()
-                };
-                // Batch k is written while batch k + 1 is compressed: writing is one thread's
-                // work, and it would otherwise leave the other cores idle.
-                let mut written: Vec<(usize, exr::error::Result<Chunk>)> = Vec::new();
-                for batch in blocks.chunks(per_batch.max(1)) {
-                    let (done, next) = rayon::join(
-                        || -> exr::error::UnitResult {
-                            for (i, chunk) in written.drain(..) {
-                                chunks.write_chunk(i, chunk?)?;
-                            }
-                            Ok(())
-                        },
-                        || compress(batch),
-                    );
-                    done?;
-                    written = next;
-                }
-                for (i, chunk) in written {
-                    chunks.write_chunk(i, chunk?)?;
-                }
-                Ok(())
-            })
-            .map_err(exr_to_io)
-        })
+        let layers: Vec<(&str, &[&str])> =
+            self.layers.iter().map(|l| (l.name, l.channels)).collect();
+        if self.width != first.0 || self.height != rows.len() || layers != first.1 {
+            return Err(Error::Runtime(format!(
+                "rows {rows:?} came as {}x{} with other layers than the image's",
+                self.width, self.height
+            )));
+        }
+        Ok(self)
     }
 
     /// Every channel as a strided view of the buffers, in name order (as EXR stores them).
@@ -288,40 +223,222 @@ impl ImageBuf {
         views.sort_by(|a, b| a.name.cmp(&b.name));
         views
     }
+}
 
-    /// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve.
-    /// Fully opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as
-    /// PNG expects.
-    pub fn write_png(&self, path: &Path, exposure_ev: f32, fingerprint: Option<u64>) -> Result<()> {
-        self.check()?;
-        let scale = exposure_ev.exp2();
-        let opaque = self.rgba.iter().all(|p| p[3] >= 1.0);
-        let channels = if opaque { 3 } else { 4 };
-        let mut bytes = Vec::with_capacity(self.rgba.len() * channels);
-        for p in &self.rgba {
-            let a = p[3].clamp(0.0, 1.0);
-            let unpremultiply = if opaque || a <= 0.0 { 1.0 } else { 1.0 / a };
-            for &c in &p[..3] {
-                bytes.push(to_u8(srgb_encode(tonemap_aces(c * unpremultiply * scale))));
-            }
-            if !opaque {
-                bytes.push(to_u8(a));
-            }
+/// Where [`write_bands`] gets an image's rows: rows `range` as an [`ImageBuf`] `range.len()` rows
+/// tall, as wide and with the same layers as every other band of the image.
+pub type BandSource<'a> = dyn FnMut(Range<usize>) -> Result<ImageBuf> + Send + 'a;
+
+/// Writes an image `height` rows tall, EXR or PNG by the extension of `path` (case-insensitive),
+/// asking `rows` for `band_rows` rows at a time, top to bottom, so only a few bands are ever held:
+/// a renderer renders each band while the one before is compressed and written. An error from
+/// `rows` aborts the write and is returned as it is; the final name is never half-written.
+pub fn write_bands(
+    path: &Path,
+    options: &WriteOptions,
+    height: usize,
+    band_rows: usize,
+    rows: &mut BandSource,
+) -> Result<()> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    let png = match ext.as_deref() {
+        Some("exr") => false,
+        Some("png") => true,
+        _ => {
+            return Err(Error::usage(format!(
+                "{}: output must end in .exr or .png",
+                path.display()
+            )))
         }
-        let (w, h) = (self.width, self.height);
-        let (Ok(w32), Ok(h32)) = (u32::try_from(w), u32::try_from(h)) else {
-            return Err(Error::Runtime(format!("{w}x{h} is too large for PNG")));
-        };
-        write_atomic(path, |out| {
-            encode_png(out, w32, h32, opaque, &bytes, fingerprint)
-        })
+    };
+    if height == 0 {
+        return Err(Error::Runtime("cannot write an image with no rows".into()));
+    }
+    let band_rows = band_rows.clamp(1, height);
+    let first_rows = 0..band_rows;
+    let first = rows(first_rows.clone())?;
+    let layers: Vec<(&'static str, &'static [&'static str])> =
+        first.layers.iter().map(|l| (l.name, l.channels)).collect();
+    let width = first.width;
+    let first = first.check_band((width, &layers), &first_rows)?;
+    let mut next = |y0: usize| -> Result<Option<ImageBuf>> {
+        if y0 >= height {
+            return Ok(None);
+        }
+        let range = y0..(y0 + band_rows).min(height);
+        rows(range.clone())?
+            .check_band((width, &layers), &range)
+            .map(Some)
+    };
+    match png {
+        true => write_png(path, options, height, first, &mut next),
+        false => write_exr(path, options, height, first, &mut next),
     }
 }
 
-/// One EXR block's bytes: for each of its lines, each channel's samples (native endian).
+/// The band starting at row `y0`, or `None` past the last row.
+type NextBand<'a> = dyn FnMut(usize) -> Result<Option<ImageBuf>> + Send + 'a;
+
+/// Writes a single-part scanline EXR, RLE-compressed, with channels R, G, B, A and every layer's.
+///
+/// Through the `exr` crate's block interface rather than its image writer: scanline blocks are
+/// assembled from the bands in place and compressed in parallel, [`EXR_BATCH_LINES`] at a time,
+/// while the previous batch is written out — or, at a band's end, while the next band is made.
+/// The image writer extracts every line on one thread, which made a 1080p frame's write a quarter
+/// of the render's wall time.
+fn write_exr(
+    path: &Path,
+    options: &WriteOptions,
+    height: usize,
+    first: ImageBuf,
+    next: &mut NextBand,
+) -> Result<()> {
+    let (width, precision) = (first.width, options.precision);
+    let sample_type = match precision {
+        ExrPrecision::Float => SampleType::F32,
+        ExrPrecision::Half => SampleType::F16,
+    };
+    let channels = first
+        .channel_views()
+        .iter()
+        .map(|v| ChannelDescription::named(v.name.as_str(), sample_type))
+        .collect();
+    // RLE: lossless and several times faster to write than ZIP on 1080p frames with eleven
+    // float channels (ZIP took 0.6–1.1 s, as long as the march); compositors read both.
+    let header = Header::new(Text::default(), (width, height), channels)
+        .with_encoding(
+            Compression::RLE,
+            BlockDescription::ScanLines,
+            LineOrder::Increasing,
+        )
+        .with_attributes(layer_attributes(options.fingerprint));
+    // The bands' own error, kept apart from the writer's I/O errors.
+    let mut failure: Option<Error> = None;
+    let written = write_atomic(path, |w: &mut BufWriter<std::fs::File>| {
+        exr::block::write(w, SmallVec::from_elem(header, 1), true, |meta, chunks| {
+            let blocks: Vec<(usize, BlockIndex)> =
+                enumerate_ordered_header_block_indices(&meta.headers).collect();
+            let per_batch = EXR_BATCH_LINES
+                .div_ceil(meta.headers[0].compression.scan_lines_per_block())
+                .max(1);
+            let compress = |batch: &[(usize, BlockIndex)], views: &[ChannelView], y0: usize| {
+                batch
+                    .par_iter()
+                    .map(|&(i, index)| {
+                        let block = UncompressedBlock {
+                            index,
+                            data: block_bytes(views, width, y0, precision, &index),
+                        };
+                        (i, block.compress_to_chunk(&meta.headers))
+                    })
+                    .collect::<Vec<_>>()
+            };
+            let mut written: Vec<(usize, exr::error::Result<Chunk>)> = Vec::new();
+            let mut flush = |written: &mut Vec<(usize, exr::error::Result<Chunk>)>| {
+                for (i, chunk) in written.drain(..) {
+                    chunks.write_chunk(i, chunk?)?;
+                }
+                exr::error::UnitResult::Ok(())
+            };
+            let (mut band, mut y0, mut at) = (first, 0, 0);
+            loop {
+                let y1 = y0 + band.height;
+                let end = blocks[at..]
+                    .iter()
+                    .position(|(_, b)| b.pixel_position.y() >= y1)
+                    .map_or(blocks.len(), |p| at + p);
+                let views = band.channel_views();
+                // Batch k is written while batch k + 1 is compressed: writing is one thread's
+                // work, and it would otherwise leave the other cores idle.
+                for batch in blocks[at..end].chunks(per_batch) {
+                    let (done, compressed) =
+                        rayon::join(|| flush(&mut written), || compress(batch, &views, y0));
+                    done?;
+                    written = compressed;
+                }
+                drop(views);
+                at = end;
+                let (done, made) = rayon::join(|| flush(&mut written), || next(y1));
+                done?;
+                match made {
+                    Ok(Some(b)) => (band, y0) = (b, y1),
+                    Ok(None) => return Ok(()),
+                    Err(e) => {
+                        failure = Some(e);
+                        return Err(exr::error::Error::Aborted);
+                    }
+                }
+            }
+        })
+        .map_err(exr_to_io)
+    });
+    match failure {
+        Some(e) => Err(e),
+        None => written,
+    }
+}
+
+/// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve. Fully
+/// opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as PNG
+/// expects. The bands are tonemapped as they come, so only the 8-bit pixels are held.
+fn write_png(
+    path: &Path,
+    options: &WriteOptions,
+    height: usize,
+    first: ImageBuf,
+    next: &mut NextBand,
+) -> Result<()> {
+    let scale = options.exposure.exp2();
+    let width = first.width;
+    let (Ok(w32), Ok(h32)) = (u32::try_from(width), u32::try_from(height)) else {
+        return Err(Error::Runtime(format!(
+            "{width}x{height} is too large for PNG"
+        )));
+    };
+    let mut bytes = vec![0u8; width * height * 4];
+    let mut opaque = true;
+    let (mut band, mut y0) = (first, 0);
+    loop {
+        let out = &mut bytes[y0 * width * 4..(y0 + band.height) * width * 4];
+        out.par_chunks_mut(width * 4)
+            .zip(band.rgba.par_chunks(width))
+            .for_each(|(out, row)| {
+                for (o, p) in out.chunks_exact_mut(4).zip(row) {
+                    let a = p[3].clamp(0.0, 1.0);
+                    let unpremultiply = if a <= 0.0 { 1.0 } else { 1.0 / a };
+                    for (o, &c) in o.iter_mut().zip(&p[..3]) {
+                        *o = to_u8(srgb_encode(tonemap_aces(c * unpremultiply * scale)));
+                    }
+                    o[3] = to_u8(a);
+                }
+            });
+        opaque &= band.rgba.iter().all(|p| p[3] >= 1.0);
+        y0 += band.height;
+        match next(y0)? {
+            Some(b) => band = b,
+            None => break,
+        }
+    }
+    if opaque {
+        // RGBA to RGB in place: pixel i's three bytes move down to 3i, never past unread ones.
+        for i in 0..width * height {
+            bytes.copy_within(4 * i..4 * i + 3, 3 * i);
+        }
+        bytes.truncate(width * height * 3);
+    }
+    write_atomic(path, |out| {
+        encode_png(out, w32, h32, opaque, &bytes, options.fingerprint)
+    })
+}
+
+/// One EXR block's bytes: for each of its lines, each channel's samples (native endian), read
+/// from `views` of the band whose first row is `y0`.
 fn block_bytes(
     views: &[ChannelView],
     width: usize,
+    y0: usize,
     precision: ExrPrecision,
     index: &BlockIndex,
 ) -> Vec<u8> {
@@ -335,7 +452,7 @@ fn block_bytes(
     // Line by line, channel by channel: one output line per (row, channel).
     let lines = rows.flat_map(|y| views.iter().map(move |v| (y, v)));
     for (line, (y, v)) in data.chunks_exact_mut(w * bytes).zip(lines) {
-        let first = (y * width + x) * v.stride + v.offset;
+        let first = ((y - y0) * width + x) * v.stride + v.offset;
         let row = v.values[first..].iter().step_by(v.stride);
         let samples = line.chunks_exact_mut(bytes).zip(row);
         match precision {
@@ -508,7 +625,15 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for precision in [ExrPrecision::Float, ExrPrecision::Half] {
             let path = dir.path().join("t.exr");
-            test_image().write_exr(&path, precision, None).unwrap();
+            test_image()
+                .write(
+                    &path,
+                    &WriteOptions {
+                        precision,
+                        ..WriteOptions::default()
+                    },
+                )
+                .unwrap();
             let image = read_all_flat_layers_from_file(&path).unwrap();
             let channels = &image.layer_data[0].channel_data.list;
             let names: Vec<String> = channels.iter().map(|c| c.name.to_string()).collect();
@@ -561,6 +686,84 @@ mod tests {
         assert_eq!(read_fingerprint(&dir.path().join("missing.exr")), None);
     }
 
+    /// Rows `range` of `image`, as a band of it.
+    fn band_of(image: &ImageBuf, range: Range<usize>) -> ImageBuf {
+        let w = image.width;
+        ImageBuf {
+            width: w,
+            height: range.len(),
+            rgba: image.rgba[range.start * w..range.end * w].to_vec(),
+            layers: image
+                .layers
+                .iter()
+                .map(|l| {
+                    let c = l.channels.len();
+                    Layer {
+                        values: l.values[range.start * w * c..range.end * w * c].to_vec(),
+                        ..l.clone()
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn bands_write_the_same_file_as_the_whole_image() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut image = test_image();
+        image.rgba[4][3] = 0.5;
+        for name in ["b.exr", "b.png"] {
+            for opaque in [true, false] {
+                let mut image = image.clone();
+                if opaque {
+                    image.rgba.iter_mut().for_each(|p| p[3] = 1.0);
+                }
+                let (whole, bands) = (dir.path().join(name), dir.path().join(format!("1{name}")));
+                image
+                    .clone()
+                    .write(&whole, &WriteOptions::default())
+                    .unwrap();
+                let mut asked = Vec::new();
+                write_bands(&bands, &WriteOptions::default(), 2, 1, &mut |r| {
+                    asked.push(r.clone());
+                    Ok(band_of(&image, r))
+                })
+                .unwrap();
+                assert_eq!(asked, [0..1, 1..2]);
+                assert_eq!(
+                    std::fs::read(&whole).unwrap(),
+                    std::fs::read(&bands).unwrap()
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_failing_or_misfit_band_aborts_the_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let image = test_image();
+        for name in ["f.exr", "f.png"] {
+            let path = dir.path().join(name);
+            let failed = write_bands(
+                &path,
+                &WriteOptions::default(),
+                2,
+                1,
+                &mut |r| match r.start {
+                    0 => Ok(band_of(&image, r)),
+                    _ => Err(Error::Runtime("the renderer stopped".into())),
+                },
+            );
+            assert_eq!(failed.unwrap_err().to_string(), "the renderer stopped");
+            // A band of the wrong height is refused, not written.
+            let misfit = write_bands(&path, &WriteOptions::default(), 2, 1, &mut |_| {
+                Ok(band_of(&image, 0..2))
+            });
+            assert!(misfit.unwrap_err().to_string().contains("rows 0..1"));
+        }
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
     #[test]
     fn mismatched_extra_layer_is_an_error() {
         let bad = [
@@ -585,7 +788,7 @@ mod tests {
             let mut img = test_image();
             img.layers.push(layer);
             assert!(img
-                .write_exr(&dir.path().join("x.exr"), ExrPrecision::Float, None)
+                .write(&dir.path().join("x.exr"), &WriteOptions::default())
                 .is_err());
         }
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);

@@ -205,7 +205,7 @@ mod tests {
     use crate::light::sh::Window;
     use crate::light::Lighting;
     use crate::render::camera::Camera;
-    use crate::render::film::{render_frame, Background};
+    use crate::render::film::{render_rows, Background};
     use crate::volume::grid::{add_hashed_leaves, SparseGrid, TileLevel, Transform};
     use crate::volume::DensityField;
     use glam::IVec3;
@@ -264,11 +264,12 @@ mod tests {
         let cam = camera();
         let bg = |d: Vec3| light.radiance(d);
         let background: Option<Background> = if background { Some(&bg) } else { None };
-        let (frame, stats) = render_frame(
+        let (frame, stats) = render_rows(
             &cam,
             spp,
             background,
             &indicatif::ProgressBar::hidden(),
+            0..cam.height,
             |s, st: &mut PathStats| tracer.trace(s, st),
         );
         assert_eq!(stats.paths, 12 * 8 * spp as u64);

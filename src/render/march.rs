@@ -522,21 +522,23 @@ pub fn march_ray<S: InScatter>(
     out
 }
 
-/// Renders `camera`'s view of `scene`: image tiles in parallel, `settings.spp` jittered samples per
-/// pixel averaged with a box filter, `progress` advanced by one per finished tile. Deterministic:
-/// every sample position comes from a hash of its pixel and index, never from the thread that runs
-/// it.
+/// Renders rows `rows` of `camera`'s view of `scene` ([`film::render_rows`]): image tiles in
+/// parallel, `settings.spp` jittered samples per pixel averaged with a box filter, `progress`
+/// advanced by one per finished tile. Deterministic: every sample position comes from a hash of
+/// its pixel and index, never from the thread that runs it or the band it is rendered in.
 pub fn render<S: InScatter>(
     scene: &Scene<S>,
     camera: &Camera,
     settings: &MarchSettings,
     progress: &ProgressBar,
+    rows: std::ops::Range<u32>,
 ) -> (Frame, MarchStats) {
-    film::render_frame(
+    film::render_rows(
         camera,
         settings.spp,
         scene.background,
         progress,
+        rows,
         |sample, stats: &mut MarchStats| {
             let jitter = hash_unit(sample.x, sample.y, sample.index, STREAM_STEP);
             march_ray(scene, sample.origin, sample.dir, jitter, settings, stats)

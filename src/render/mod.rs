@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use glam::{DVec3, Vec3};
 
 pub use camera::Camera;
-pub use film::{Background, Frame};
+pub use film::{band_rows, Background, Frame, Rows};
 pub use march::{MarchSettings, MarchStats};
 
 use march::Scene;
@@ -139,9 +139,11 @@ impl TransferShape {
     }
 }
 
-/// Relights `transfer` under `light` and marches `field` as `camera` sees it, with `background`
-/// behind the volume (`None`: alpha); `progress` counts image tiles.
-pub fn render_volume(
+/// Relights `transfer` under `light` and hands `consume` the march of `field` as `camera` sees it,
+/// row by row ([`Rows`]), with `background` behind the volume (`None`: alpha); `progress` counts
+/// image tiles. The statistics and the march time are those of every row `consume` asked for.
+#[allow(clippy::too_many_arguments)]
+pub fn render_volume<R>(
     field: &DensityField,
     transfer: &Transfer,
     light: &Light,
@@ -149,7 +151,8 @@ pub fn render_volume(
     camera: &Camera,
     settings: &MarchSettings,
     progress: &indicatif::ProgressBar,
-) -> (Frame, MarchStats, RenderReport) {
+    consume: impl FnOnce(&mut Rows) -> R,
+) -> (R, MarchStats, RenderReport) {
     let Light {
         lighting,
         suns,
@@ -185,15 +188,21 @@ pub fn render_volume(
         ),
     );
     let relight_time = t.elapsed();
-    let t = Instant::now();
     let scene = Scene::new(field, transfer.medium, &source, background);
-    let (frame, stats) = march::render(&scene, camera, settings, progress);
+    let (mut stats, mut march_time) = (MarchStats::default(), Duration::ZERO);
+    let out = consume(&mut |rows| {
+        let t = Instant::now();
+        let (frame, s) = march::render(&scene, camera, settings, progress, rows);
+        stats += s;
+        march_time += t.elapsed();
+        frame
+    });
     let report = RenderReport {
         project,
         relight: relight_time,
-        march: t.elapsed(),
+        march: march_time,
     };
-    (frame, stats, report)
+    (out, stats, report)
 }
 
 impl Frame {
@@ -343,6 +352,7 @@ mod tests {
             &cam,
             &MarchSettings::default(),
             &indicatif::ProgressBar::hidden(),
+            |rows| rows(0..16),
         );
         assert_eq!(stats.rays, 24 * 16);
         for px in &frame.rgba {

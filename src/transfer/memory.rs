@@ -80,7 +80,7 @@ impl MemoryEstimate {
         } else {
             let rows = 4.0 + reflecting * d as f64;
             let chunks = (threads as f64 * rows * (n * lattice::CHUNK as u64 * 4) as f64) as u64;
-            2 * one + n * d * 28 + (n * d * 24).max(chunks)
+            2 * one + n * d * LINK_RECORD_BYTES + (n * d * LINK_GATHER_BYTES).max(chunks)
         };
         MemoryEstimate {
             density: field_bytes as u64,
@@ -93,6 +93,18 @@ impl MemoryEstimate {
     pub fn total(&self) -> u64 {
         self.density + self.layout + self.transfer + self.working
     }
+}
+
+/// Bytes of a lattice link's record in its sweep.
+const LINK_RECORD_BYTES: u64 = 28;
+/// Bytes per link of the per-cell values the records are gathered from, while the links are built.
+const LINK_GATHER_BYTES: u64 = 24;
+
+/// Working memory of one sun's multiple-scattering solve on a lattice of `directions` over
+/// `transfer_voxels` ([`lattice::solve_emission`]): its links, while they are built. One value a
+/// node is all it solves for, so its chunk buffers are small beside them.
+pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize) -> u64 {
+    transfer_voxels as u64 * directions as u64 * (LINK_RECORD_BYTES + LINK_GATHER_BYTES)
 }
 
 /// Above this many transfer voxels (by [`TransferLayout::estimate_len`]) a plan estimates the
@@ -229,54 +241,100 @@ impl BakePlan {
 const RENDER_BYTES_PER_TRANSFER_VOXEL: u64 = 24 + 28 + 105;
 /// Bytes per pixel of a frame: RGBA, the direct and indirect RGB layers and depth, f32 each.
 const FRAME_BYTES_PER_PIXEL: u64 = 4 * (4 + 3 + 3 + 1);
+/// Bands of rows an EXR write holds at once: the one being rendered, the one being compressed,
+/// its lines' bytes before and after compression (measured: 19 MiB at 1920 wide, 3.7 bands).
+const EXR_BANDS_IN_FLIGHT: u64 = 4;
+/// Bands of rows a PNG write holds at once: the one being rendered and the one being tonemapped.
+const PNG_BANDS_IN_FLIGHT: u64 = 2;
+/// A render's process before it reads anything: code, thread stacks, the allocator (a 16×9
+/// render of the 1.4 MB fixture's cache peaks at 13.7 MiB, 5.4 MiB of it volume and transfer).
+const RENDER_BASELINE: u64 = 8 << 20;
+/// Resident memory beyond the volume and the transfer, per byte of them: buffers of the cache
+/// read and the field's build freed but kept by the allocator, measured 0.0–0.44 of them at
+/// 16×9 on the bench caches (0.19 on the 21 M-voxel cloud, docs/benchmarks.md "Render memory").
+const RENDER_SLACK: f64 = 0.2;
 
-/// Peak memory of a render, estimated before the light and the frame are allocated.
+/// Bytes the image of a `width`×`height` render holds while it is rendered and written
+/// ([`crate::io::image::write_bands`]): a few bands of rows for an EXR, one band and the whole
+/// image's 8-bit RGBA pixels for a PNG.
+pub fn image_bytes(width: u32, height: u32, png: bool) -> u64 {
+    let band = crate::render::band_rows(width).min(height) as u64 * width as u64;
+    match png {
+        true => {
+            PNG_BANDS_IN_FLIGHT * band * FRAME_BYTES_PER_PIXEL + width as u64 * height as u64 * 4
+        }
+        false => EXR_BANDS_IN_FLIGHT * band * FRAME_BYTES_PER_PIXEL,
+    }
+}
+
+/// Peak memory of a render, estimated before the light and the frame are allocated: the larger of
+/// its two phases, a new sun's multiple-scattering solve (its links beside the shadow volumes)
+/// and the march (relit nodes and the image beside them).
 #[derive(Debug, Clone, Copy)]
 pub struct RenderEstimate {
     /// The density and its accelerators.
     pub volume: u64,
     /// T_ri and F_ms (f32) and what relighting and the march keep per transfer voxel.
     pub transfer: u64,
+    /// The march's share of `transfer`: held only after the suns are solved.
+    march: u64,
     /// The suns' shadow volumes and fluences and a single-scattering transfer's visibility, where
     /// not kept from an earlier render.
     pub light: u64,
-    /// The frame's buffers.
+    /// A new sun's multiple-scattering solve ([`sun_solve_bytes`]; 0 without one).
+    pub solve: u64,
+    /// The frame's buffers ([`image_bytes`]).
     pub image: u64,
 }
 
 impl RenderEstimate {
-    /// `coefficients`: T_ri and F_ms values held; `light`: [`crate::scene::Scene::light_plan`].
+    /// `coefficients`: T_ri and F_ms values held; `light`: [`crate::scene::Scene::light_plan`];
+    /// `solve`: [`sun_solve_bytes`] when a new sun will be solved; `image`: [`image_bytes`].
     pub fn new(
         field: &DensityField,
         transfer_voxels: usize,
         coefficients: usize,
         light: u64,
-        (width, height): (u32, u32),
+        solve: u64,
+        image: u64,
     ) -> RenderEstimate {
+        let march = transfer_voxels as u64 * RENDER_BYTES_PER_TRANSFER_VOXEL;
         RenderEstimate {
             volume: (field.grid.memory_bytes() + field.accelerator_bytes()) as u64,
-            transfer: coefficients as u64 * 4
-                + transfer_voxels as u64 * RENDER_BYTES_PER_TRANSFER_VOXEL,
+            transfer: coefficients as u64 * 4 + march,
+            march,
             light,
-            image: width as u64 * height as u64 * FRAME_BYTES_PER_PIXEL,
+            solve,
+            image,
         }
     }
 
     /// The estimated peak resident memory, the process's own baseline included.
     pub fn total(&self) -> u64 {
-        PROCESS_BASELINE + self.volume + self.transfer + self.light + self.image
+        let held = self.volume + self.transfer - self.march;
+        let slack = ((held + self.march) as f64 * RENDER_SLACK) as u64;
+        RENDER_BASELINE + held + slack + self.light + self.solve.max(self.march + self.image)
     }
 
     /// One line for `--dry-run`.
     pub fn describe(&self) -> String {
         format!(
-            "estimated peak memory {} (volume {}, transfer {}, suns and visibility {}, image {})",
+            "estimated peak memory {} (volume {}, transfer {}, suns and visibility {}, image {}{})",
             human(self.total()),
             human(self.volume),
             human(self.transfer),
             human(self.light),
-            human(self.image)
+            human(self.image),
+            self.describe_solve()
         )
+    }
+
+    /// The sun solve's part of a description, when there is one.
+    fn describe_solve(&self) -> String {
+        match self.solve {
+            0 => String::new(),
+            b => format!(", a sun's lattice solve {} while it runs", human(b)),
+        }
     }
 
     /// Refuses the render if its estimate is above `limit` (`None`: [`default_limit`]), naming
@@ -286,12 +344,13 @@ impl RenderEstimate {
         match limit.filter(|l| self.total() > *l) {
             None => Ok(()),
             Some(limit) => Err(Error::Runtime(format!(
-                "this render needs about {} (the volume {}, its transfer {}, suns and visibility {}, the image {}) but may use {} (--max-memory); fewer suns, a smaller --res, or a volume with fewer active voxels would fit",
+                "this render needs about {} (the volume {}, its transfer {}, suns and visibility {}, the image {}{}) but may use {} (--max-memory); fewer suns, a smaller --res, or a volume with fewer active voxels would fit",
                 human(self.total()),
                 human(self.volume),
                 human(self.transfer),
                 human(self.light),
                 human(self.image),
+                self.describe_solve(),
                 human(limit)
             ))),
         }
@@ -315,4 +374,24 @@ fn estimate(
         reflecting,
         rayon::current_num_threads(),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_streamed_exr_holds_bands_not_the_frame() {
+        // 1920 wide: bands of 64 rows, four in flight, whatever the height.
+        let band = 64 * 1920 * FRAME_BYTES_PER_PIXEL;
+        assert_eq!(image_bytes(1920, 1080, false), 4 * band);
+        assert_eq!(image_bytes(1920, 4320, false), 4 * band);
+        // A PNG keeps its 8-bit pixels besides the bands being rendered and tonemapped.
+        assert_eq!(image_bytes(1920, 1080, true), 2 * band + 1920 * 1080 * 4);
+        // A frame shorter than a band is one band.
+        assert_eq!(
+            image_bytes(100, 10, false),
+            4 * 1000 * FRAME_BYTES_PER_PIXEL
+        );
+    }
 }

@@ -132,7 +132,8 @@ fn dry_run_counts_the_shadow_volumes_and_the_budget_refuses_them() {
         "{stdout}"
     );
     // From a cache (so the bake's own budget is not what refuses): the render's whole peak is
-    // estimated, its image at 44 bytes a pixel (48 × 27 × 44 = 57 024 B), and refused.
+    // estimated, and refused. A PNG this small is one band of rows, held twice (44 bytes a pixel
+    // each), and the 8-bit pixels (4): 48 × 27 × 92 = 119 232 B.
     let input = fixture("cloud.vdb");
     let mut bake = vec!["bake", input.to_str().unwrap(), "-o", "c.vtc"];
     bake.extend_from_slice(&QUICK[2..]);
@@ -146,7 +147,9 @@ fn dry_run_counts_the_shadow_volumes_and_the_budget_refuses_them() {
         "{stdout}{}",
         stderr(&dry)
     );
-    assert!(stdout.contains("image 55.69 KiB)"), "{stdout}");
+    assert!(stdout.contains("image 116.44 KiB, "), "{stdout}");
+    // The default sky's sun is new to this process: its lattice solve is counted.
+    assert!(stdout.contains("a sun's lattice solve "), "{stdout}");
     assert_clean_failure(
         &vscatter_in(dir.path(), &[&args[..], &["--max-memory", "5M"]].concat()),
         1,

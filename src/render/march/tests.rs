@@ -108,7 +108,13 @@ fn zero_density_shows_the_background_exactly() {
                     ..MarchSettings::default()
                 };
                 for cam in cameras(&zeros, 24, 16) {
-                    let (frame, _) = render(&scene, &cam, &settings, &ProgressBar::hidden());
+                    let (frame, _) = render(
+                        &scene,
+                        &cam,
+                        &settings,
+                        &ProgressBar::hidden(),
+                        0..cam.height,
+                    );
                     for (i, px) in frame.rgba.iter().enumerate() {
                         let (x, y) = (i as u32 % 24, i as u32 / 24);
                         let (_, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
@@ -190,7 +196,13 @@ fn pure_absorber_is_transmittance_times_background() {
     let bhi = g.transform.index_to_world(DVec3::splat(127.5));
     let (mut face_rays, mut hits) = (0, 0);
     for cam in cameras(&g, w, h) {
-        let (frame, _) = render(&scene, &cam, &settings, &ProgressBar::hidden());
+        let (frame, _) = render(
+            &scene,
+            &cam,
+            &settings,
+            &ProgressBar::hidden(),
+            0..cam.height,
+        );
         for (i, px) in frame.rgba.iter().enumerate() {
             let (x, y) = (i as u32 % w, i as u32 / w);
             let (origin, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
@@ -236,6 +248,7 @@ fn furnace_albedo_one_gives_the_background() {
                 &cam,
                 &MarchSettings::default(),
                 &ProgressBar::hidden(),
+                0..cam.height,
             );
             for px in &frame.rgba {
                 for ch in 0..3 {
@@ -277,8 +290,14 @@ fn skipping_changes_nothing() {
                 skip_empty: false,
                 ..settings
             };
-            let (a, sa) = render(&scene, &cam, &settings, &ProgressBar::hidden());
-            let (b, sb) = render(&scene, &cam, &plain, &ProgressBar::hidden());
+            let (a, sa) = render(
+                &scene,
+                &cam,
+                &settings,
+                &ProgressBar::hidden(),
+                0..cam.height,
+            );
+            let (b, sb) = render(&scene, &cam, &plain, &ProgressBar::hidden(), 0..cam.height);
             assert_eq!(a, b);
             assert_eq!(sb.samples_skipped, 0);
             assert_eq!(sa.samples_taken + sa.samples_skipped, sb.samples_taken);
@@ -300,6 +319,7 @@ fn no_background_is_premultiplied_with_alpha() {
         &cam,
         &MarchSettings::default(),
         &ProgressBar::hidden(),
+        0..cam.height,
     );
     assert_eq!(stats.rays, 400);
     // The framing camera sees the tile fill most of the frame: the checks below run on them.
@@ -497,14 +517,41 @@ fn real_cloud_skip_equals_plain() {
         &cam,
         &MarchSettings::default(),
         &ProgressBar::hidden(),
+        0..cam.height,
     );
     let plain = MarchSettings {
         skip_empty: false,
         ..MarchSettings::default()
     };
-    let (b, _) = render(&scene, &cam, &plain, &ProgressBar::hidden());
+    let (b, _) = render(&scene, &cam, &plain, &ProgressBar::hidden(), 0..cam.height);
     assert_eq!(a, b);
     assert!(sa.samples_skipped > 0);
     // The cloud blocks part of the sky: some pixels are mostly volume.
     assert!(a.direct.iter().any(|d| d[0] > 0.1));
+}
+
+#[test]
+fn bands_of_rows_make_the_whole_frame() {
+    // An image written band by band must be the image rendered at once, statistics included,
+    // whatever rows a band starts at.
+    let g = unit_tile(Transform::default(), 1.0);
+    let field = DensityField::new(g);
+    let source = uniform([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
+    let scene = Scene::new(&field, medium(0.01, 0.5), &source, None);
+    let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 45, 45.0).unwrap();
+    let settings = MarchSettings::default();
+    let bar = ProgressBar::hidden();
+    let (whole, ws) = render(&scene, &cam, &settings, &bar, 0..cam.height);
+    let mut rgba = Vec::new();
+    let mut rays = 0;
+    for rows in [0..7, 7..40, 40..45] {
+        let (band, s) = render(&scene, &cam, &settings, &bar, rows.clone());
+        assert_eq!((band.width, band.height), (20, rows.len() as u32));
+        assert_eq!(band.depth.len(), 20 * rows.len());
+        rgba.extend(band.rgba);
+        rays += s.rays;
+    }
+    assert_eq!(rgba, whole.rgba);
+    assert_eq!(rays, ws.rays);
+    assert!(whole.rgba.iter().any(|p| p[3] > 0.0));
 }
