@@ -285,7 +285,7 @@ type NextBand<'a> = dyn FnMut(usize) -> Result<Option<ImageBuf>> + Send + 'a;
 ///
 /// Through the `exr` crate's block interface rather than its image writer: scanline blocks are
 /// assembled from the bands in place and compressed in parallel, [`EXR_BATCH_LINES`] at a time,
-/// while the previous batch is written out — or, at a band's end, while the next band is made.
+/// while the previous batch is written out and the next band is made.
 /// The image writer extracts every line on one thread, which made a 1080p frame's write a quarter
 /// of the render's wall time.
 fn write_exr(
@@ -335,33 +335,38 @@ fn write_exr(
                     })
                     .collect::<Vec<_>>()
             };
-            let mut written: Vec<(usize, exr::error::Result<Chunk>)> = Vec::new();
-            let mut flush = |written: &mut Vec<(usize, exr::error::Result<Chunk>)>| {
-                for (i, chunk) in written.drain(..) {
-                    chunks.write_chunk(i, chunk?)?;
-                }
-                exr::error::UnitResult::Ok(())
-            };
-            let (mut band, mut y0, mut at) = (first, 0, 0);
-            loop {
+            // A band's lines are compressed and written while the next band is made, so the
+            // cores a band's last tiles leave idle compress, and none waits at a band's end.
+            let mut store = |band: ImageBuf, y0: usize, at: usize| -> exr::error::Result<usize> {
                 let y1 = y0 + band.height;
                 let end = blocks[at..]
                     .iter()
                     .position(|(_, b)| b.pixel_position.y() >= y1)
                     .map_or(blocks.len(), |p| at + p);
                 let views = band.channel_views();
+                let mut written: Vec<(usize, exr::error::Result<Chunk>)> = Vec::new();
+                let mut flush = |written: &mut Vec<(usize, exr::error::Result<Chunk>)>| {
+                    for (i, chunk) in written.drain(..) {
+                        chunks.write_chunk(i, chunk?)?;
+                    }
+                    exr::error::UnitResult::Ok(())
+                };
                 // Batch k is written while batch k + 1 is compressed: writing is one thread's
-                // work, and it would otherwise leave the other cores idle.
+                // work.
                 for batch in blocks[at..end].chunks(per_batch) {
                     let (done, compressed) =
                         rayon::join(|| flush(&mut written), || compress(batch, &views, y0));
                     done?;
                     written = compressed;
                 }
-                drop(views);
-                at = end;
-                let (done, made) = rayon::join(|| flush(&mut written), || next(y1));
-                done?;
+                flush(&mut written)?;
+                Ok(end)
+            };
+            let (mut band, mut y0, mut at) = (first, 0, 0);
+            loop {
+                let y1 = y0 + band.height;
+                let (stored, made) = rayon::join(|| store(band, y0, at), || next(y1));
+                at = stored?;
                 match made {
                     Ok(Some(b)) => (band, y0) = (b, y1),
                     Ok(None) => return Ok(()),
