@@ -272,14 +272,27 @@ pub fn write_bands(
             .check_band((width, &layers), &range)
             .map(Some)
     };
+    let bands = Bands {
+        height,
+        first,
+        next: &mut next,
+    };
     match png {
-        true => write_png(path, options, height, first, &mut next),
-        false => write_exr(path, options, height, first, &mut next),
+        true => write_png(path, options, bands),
+        false => write_exr(path, options, bands),
     }
 }
 
 /// The band starting at row `y0`, or `None` past the last row.
 type NextBand<'a> = dyn FnMut(usize) -> Result<Option<ImageBuf>> + Send + 'a;
+
+/// An image's bands as a format's writer takes them: the first, already checked, and the rest
+/// on demand.
+struct Bands<'a, 'b> {
+    height: usize,
+    first: ImageBuf,
+    next: &'a mut NextBand<'b>,
+}
 
 /// Writes a single-part scanline EXR, RLE-compressed, with channels R, G, B, A and every layer's.
 ///
@@ -288,13 +301,12 @@ type NextBand<'a> = dyn FnMut(usize) -> Result<Option<ImageBuf>> + Send + 'a;
 /// while the previous batch is written out and the next band is made.
 /// The image writer extracts every line on one thread, which made a 1080p frame's write a quarter
 /// of the render's wall time.
-fn write_exr(
-    path: &Path,
-    options: &WriteOptions,
-    height: usize,
-    first: ImageBuf,
-    next: &mut NextBand,
-) -> Result<()> {
+fn write_exr(path: &Path, options: &WriteOptions, bands: Bands) -> Result<()> {
+    let Bands {
+        height,
+        first,
+        next,
+    } = bands;
     let (width, precision) = (first.width, options.precision);
     let sample_type = match precision {
         ExrPrecision::Float => SampleType::F32,
@@ -388,13 +400,12 @@ fn write_exr(
 /// Writes an 8-bit sRGB PNG: exposure 2^EV, the ACES filmic tonemap, then the sRGB curve. Fully
 /// opaque images become RGB; otherwise RGBA with straight (un-premultiplied) alpha, as PNG
 /// expects. The bands are tonemapped as they come, so only the 8-bit pixels are held.
-fn write_png(
-    path: &Path,
-    options: &WriteOptions,
-    height: usize,
-    first: ImageBuf,
-    next: &mut NextBand,
-) -> Result<()> {
+fn write_png(path: &Path, options: &WriteOptions, bands: Bands) -> Result<()> {
+    let Bands {
+        height,
+        first,
+        next,
+    } = bands;
     let scale = options.exposure.exp2();
     let width = first.width;
     let (Ok(w32), Ok(h32)) = (u32::try_from(width), u32::try_from(height)) else {

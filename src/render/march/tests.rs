@@ -108,13 +108,7 @@ fn zero_density_shows_the_background_exactly() {
                     ..MarchSettings::default()
                 };
                 for cam in cameras(&zeros, 24, 16) {
-                    let (frame, _) = render(
-                        &scene,
-                        &cam,
-                        &settings,
-                        &ProgressBar::hidden(),
-                        0..cam.height,
-                    );
+                    let (frame, _) = render_whole(&scene, &cam, &settings);
                     for (i, px) in frame.rgba.iter().enumerate() {
                         let (x, y) = (i as u32 % 24, i as u32 / 24);
                         let (_, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
@@ -196,13 +190,7 @@ fn pure_absorber_is_transmittance_times_background() {
     let bhi = g.transform.index_to_world(DVec3::splat(127.5));
     let (mut face_rays, mut hits) = (0, 0);
     for cam in cameras(&g, w, h) {
-        let (frame, _) = render(
-            &scene,
-            &cam,
-            &settings,
-            &ProgressBar::hidden(),
-            0..cam.height,
-        );
+        let (frame, _) = render_whole(&scene, &cam, &settings);
         for (i, px) in frame.rgba.iter().enumerate() {
             let (x, y) = (i as u32 % w, i as u32 / w);
             let (origin, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
@@ -243,13 +231,7 @@ fn furnace_albedo_one_gives_the_background() {
     for sigma_t in [0.5f32, 4.0, 200.0] {
         let scene = Scene::new(&field, medium(sigma_t, 1.0), &source, Some(&bg));
         for cam in cameras(&g, 16, 12) {
-            let (frame, _) = render(
-                &scene,
-                &cam,
-                &MarchSettings::default(),
-                &ProgressBar::hidden(),
-                0..cam.height,
-            );
+            let (frame, _) = render_whole(&scene, &cam, &MarchSettings::default());
             for px in &frame.rgba {
                 for ch in 0..3 {
                     assert!((px[ch] - c[ch]).abs() < 1e-5 * c[ch], "{px:?}");
@@ -290,14 +272,8 @@ fn skipping_changes_nothing() {
                 skip_empty: false,
                 ..settings
             };
-            let (a, sa) = render(
-                &scene,
-                &cam,
-                &settings,
-                &ProgressBar::hidden(),
-                0..cam.height,
-            );
-            let (b, sb) = render(&scene, &cam, &plain, &ProgressBar::hidden(), 0..cam.height);
+            let (a, sa) = render_whole(&scene, &cam, &settings);
+            let (b, sb) = render_whole(&scene, &cam, &plain);
             assert_eq!(a, b);
             assert_eq!(sb.samples_skipped, 0);
             assert_eq!(sa.samples_taken + sa.samples_skipped, sb.samples_taken);
@@ -314,13 +290,7 @@ fn no_background_is_premultiplied_with_alpha() {
     let source = uniform([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]]);
     let scene = Scene::new(&field, medium(0.01, 0.5), &source, None);
     let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 20, 45.0).unwrap();
-    let (frame, stats) = render(
-        &scene,
-        &cam,
-        &MarchSettings::default(),
-        &ProgressBar::hidden(),
-        0..cam.height,
-    );
+    let (frame, stats) = render_whole(&scene, &cam, &MarchSettings::default());
     assert_eq!(stats.rays, 400);
     // The framing camera sees the tile fill most of the frame: the checks below run on them.
     let covered = frame.rgba.iter().filter(|px| px[3] > 0.0).count();
@@ -512,18 +482,12 @@ fn real_cloud_skip_equals_plain() {
     let sigma_t = 8.0 / (96.0 * g.transform.voxel_size().x as f32);
     let source = smooth();
     let scene = Scene::new(&field, medium(sigma_t, 0.9), &source, Some(&sky));
-    let (a, sa) = render(
-        &scene,
-        &cam,
-        &MarchSettings::default(),
-        &ProgressBar::hidden(),
-        0..cam.height,
-    );
+    let (a, sa) = render_whole(&scene, &cam, &MarchSettings::default());
     let plain = MarchSettings {
         skip_empty: false,
         ..MarchSettings::default()
     };
-    let (b, _) = render(&scene, &cam, &plain, &ProgressBar::hidden(), 0..cam.height);
+    let (b, _) = render_whole(&scene, &cam, &plain);
     assert_eq!(a, b);
     assert!(sa.samples_skipped > 0);
     // The cloud blocks part of the sky: some pixels are mostly volume.
@@ -554,4 +518,13 @@ fn bands_of_rows_make_the_whole_frame() {
     assert_eq!(rgba, whole.rgba);
     assert_eq!(rays, ws.rays);
     assert!(whole.rgba.iter().any(|p| p[3] > 0.0));
+}
+
+/// The whole frame of `cam`, rendered at once.
+fn render_whole<S: InScatter>(
+    scene: &Scene<S>,
+    cam: &Camera,
+    settings: &MarchSettings,
+) -> (Frame, MarchStats) {
+    render(scene, cam, settings, &ProgressBar::hidden(), 0..cam.height)
 }
