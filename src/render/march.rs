@@ -135,6 +135,9 @@ pub struct SunSum<'a> {
 impl<'a> InScatter for SunRadiance<'a> {
     type Sum = SunSum<'a>;
 
+    // Inlined, as the other sums' are: out of line, a ray's SunSum (its sampler's cache) is
+    // built and then copied out, which cost 1.5 % of a render's instructions.
+    #[inline]
     fn start(&self) -> SunSum<'a> {
         SunSum {
             sampler: self.field.sampler(),
@@ -153,6 +156,7 @@ impl<'a> InScatter for SunRadiance<'a> {
         }
     }
 
+    #[inline]
     fn total(&self, sum: SunSum<'a>) -> [[f32; 3]; 2] {
         [sum.direct, [0.0; 3]]
     }

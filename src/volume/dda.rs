@@ -218,6 +218,7 @@ impl Occupancy {
         }
     }
 
+    #[inline]
     fn node(&self, key: IVec3) -> Option<NodeCell> {
         if let Some(&m) = self.roots.get(&(key >> NODES_PER_ROOT_LOG2)) {
             return Some(NodeCell::Dense(m));
