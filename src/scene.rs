@@ -364,19 +364,14 @@ impl Scene {
         };
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
-        let mut stats = PathStats::default();
-        let out = consume(&mut |rows| {
-            let (frame, s) = render::film::render_rows(
-                camera,
-                trace.spp,
-                background,
-                progress,
-                rows,
-                |sample, st| tracer.trace(sample, st),
-            );
-            stats += s;
-            frame
-        });
+        let (out, stats, _) = render::film::stream_rows(
+            camera,
+            trace.spp,
+            background,
+            progress,
+            |sample, st| tracer.trace(sample, st),
+            consume,
+        );
         (out, stats)
     }
 }

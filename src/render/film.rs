@@ -4,6 +4,7 @@
 //! camera ray returns, so both share the same pixels, filter, layers and progress bar.
 
 use std::ops::Range;
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 use indicatif::ProgressBar;
@@ -176,6 +177,32 @@ where
         stats += s;
     }
     (frame, stats)
+}
+
+/// Hands `consume` `camera`'s image row by row ([`Rows`]), each band it asks for rendered by
+/// [`render_rows`] with `trace`. Returns what `consume` made, the statistics of every row it asked
+/// for (summed in the order asked), and the time spent rendering them.
+pub fn stream_rows<St, F, R>(
+    camera: &Camera,
+    spp: u32,
+    background: Option<Background>,
+    progress: &ProgressBar,
+    trace: F,
+    consume: impl FnOnce(&mut Rows) -> R,
+) -> (R, St, Duration)
+where
+    St: Default + std::ops::AddAssign + Send,
+    F: Fn(CameraSample, &mut St) -> RayResult + Sync,
+{
+    let (mut stats, mut time) = (St::default(), Duration::ZERO);
+    let out = consume(&mut |rows| {
+        let t = Instant::now();
+        let (frame, s) = render_rows(camera, spp, background, progress, rows, &trace);
+        stats += s;
+        time += t.elapsed();
+        frame
+    });
+    (out, stats, time)
 }
 
 /// One image row's part of a tile, in the frame's buffers.

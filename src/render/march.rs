@@ -26,7 +26,7 @@ use indicatif::ProgressBar;
 use crate::math::floor::floor_split;
 use crate::math::hash::hash_unit;
 use crate::render::camera::{Camera, STREAM_STEP};
-use crate::render::film::{self, Background, Frame, RayResult};
+use crate::render::film::{self, Background, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout, PHASE};
 use crate::volume::bricks::BrickSampler;
@@ -526,27 +526,28 @@ pub fn march_ray<S: InScatter>(
     out
 }
 
-/// Renders rows `rows` of `camera`'s view of `scene` ([`film::render_rows`]): image tiles in
+/// Hands `consume` `camera`'s view of `scene` row by row ([`film::stream_rows`]): image tiles in
 /// parallel, `settings.spp` jittered samples per pixel averaged with a box filter, `progress`
-/// advanced by one per finished tile. Deterministic: every sample position comes from a hash of
-/// its pixel and index, never from the thread that runs it or the band it is rendered in.
-pub fn render<S: InScatter>(
+/// advanced by one per finished tile; returns what `consume` made, the statistics of the rows it
+/// asked for and the march's time. Deterministic: every sample position comes from a hash of its
+/// pixel and index, never from the thread that runs it or the band it is rendered in.
+pub fn stream<S: InScatter, R>(
     scene: &Scene<S>,
     camera: &Camera,
     settings: &MarchSettings,
     progress: &ProgressBar,
-    rows: std::ops::Range<u32>,
-) -> (Frame, MarchStats) {
-    film::render_rows(
+    consume: impl FnOnce(&mut film::Rows) -> R,
+) -> (R, MarchStats, std::time::Duration) {
+    film::stream_rows(
         camera,
         settings.spp,
         scene.background,
         progress,
-        rows,
         |sample, stats: &mut MarchStats| {
             let jitter = hash_unit(sample.x, sample.y, sample.index, STREAM_STEP);
             march_ray(scene, sample.origin, sample.dir, jitter, settings, stats)
         },
+        consume,
     )
 }
 

@@ -189,14 +189,7 @@ pub fn render_volume<R>(
     );
     let relight_time = t.elapsed();
     let scene = Scene::new(field, transfer.medium, &source, background);
-    let (mut stats, mut march_time) = (MarchStats::default(), Duration::ZERO);
-    let out = consume(&mut |rows| {
-        let t = Instant::now();
-        let (frame, s) = march::render(&scene, camera, settings, progress, rows);
-        stats += s;
-        march_time += t.elapsed();
-        frame
-    });
+    let (out, stats, march_time) = march::stream(&scene, camera, settings, progress, consume);
     let report = RenderReport {
         project,
         relight: relight_time,

@@ -311,8 +311,8 @@ impl RenderEstimate {
 
     /// The estimated peak resident memory, the process's own baseline included.
     pub fn total(&self) -> u64 {
+        let slack = ((self.volume + self.transfer) as f64 * RENDER_SLACK) as u64;
         let held = self.volume + self.transfer - self.march;
-        let slack = ((held + self.march) as f64 * RENDER_SLACK) as u64;
         RENDER_BASELINE + held + slack + self.light + self.solve.max(self.march + self.image)
     }
 

@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::math::ray::Ray;
+use crate::render::film::Frame;
 use crate::render::relight::Radiance;
 use crate::volume::grid::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
 use crate::volume::visibility::Visibility;
@@ -505,16 +506,18 @@ fn bands_of_rows_make_the_whole_frame() {
     let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 20, 45, 45.0).unwrap();
     let settings = MarchSettings::default();
     let bar = ProgressBar::hidden();
-    let (whole, ws) = render(&scene, &cam, &settings, &bar, 0..cam.height);
-    let mut rgba = Vec::new();
-    let mut rays = 0;
-    for rows in [0..7, 7..40, 40..45] {
-        let (band, s) = render(&scene, &cam, &settings, &bar, rows.clone());
-        assert_eq!((band.width, band.height), (20, rows.len() as u32));
-        assert_eq!(band.depth.len(), 20 * rows.len());
-        rgba.extend(band.rgba);
-        rays += s.rays;
-    }
+    let (whole, ws) = render_whole(&scene, &cam, &settings);
+    let (rgba, s, _) = stream(&scene, &cam, &settings, &bar, |rows| {
+        let mut rgba = Vec::new();
+        for range in [0..7, 7..40, 40..45] {
+            let band = rows(range.clone());
+            assert_eq!((band.width, band.height), (20, range.len() as u32));
+            assert_eq!(band.depth.len(), 20 * range.len());
+            rgba.extend(band.rgba);
+        }
+        rgba
+    });
+    let rays = s.rays;
     assert_eq!(rgba, whole.rgba);
     assert_eq!(rays, ws.rays);
     assert!(whole.rgba.iter().any(|p| p[3] > 0.0));
@@ -526,5 +529,8 @@ fn render_whole<S: InScatter>(
     cam: &Camera,
     settings: &MarchSettings,
 ) -> (Frame, MarchStats) {
-    render(scene, cam, settings, &ProgressBar::hidden(), 0..cam.height)
+    let (frame, stats, _) = stream(scene, cam, settings, &ProgressBar::hidden(), |rows| {
+        rows(0..cam.height)
+    });
+    (frame, stats)
 }
