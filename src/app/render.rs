@@ -539,10 +539,7 @@ fn transfer(
     let estimate = RenderEstimate::new(
         &scene.field,
         scene.transfer.as_ref().map_or(0, |t| t.layout.len()),
-        scene
-            .transfer
-            .as_ref()
-            .map_or(0, |t| t.t_ri.len() + t.f_ms.len()),
+        scene.transfer.as_ref().map_or(0, |t| t.coefficient_bytes()),
         scene.light_plan(view.lighting),
         scene.sun_solve_plan(view.lighting),
         memory::image_bytes(view.camera.width, view.camera.height, view.png),

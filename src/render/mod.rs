@@ -234,7 +234,7 @@ mod tests {
     use super::*;
     use crate::light::env::Environment;
     use crate::light::sh::Window;
-    use crate::transfer::{Medium, TransferLayout};
+    use crate::transfer::{Coefficients, Medium, TransferLayout};
     use crate::volume::grid::TileLevel;
     use crate::volume::Transform;
     use glam::IVec3;
@@ -308,7 +308,8 @@ mod tests {
         let layout = TransferLayout::build(&g, 6);
         let sqrt_4pi = (4.0 * std::f32::consts::PI).sqrt();
         let n = layout.len() * 4;
-        let dc = |v: f32| (0..n).map(|i| if i % 4 == 0 { v } else { 0.0 }).collect();
+        let dc =
+            |v: f32| Coefficients::F32((0..n).map(|i| if i % 4 == 0 { v } else { 0.0 }).collect());
         let transfer = Transfer {
             layout,
             bands: 2,

@@ -5,7 +5,8 @@
 
 use rayon::prelude::*;
 
-use crate::transfer::{Transfer, PHASE};
+use crate::transfer::coefficients::MAX_COEFFS;
+use crate::transfer::{Coefficients, Transfer, PHASE};
 
 /// Slots per rayon task: large enough that scheduling costs nothing next to the dot products.
 const SLOTS_PER_TASK: usize = 1024;
@@ -63,13 +64,20 @@ pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
             sum * PHASE
         })
     };
-    let per_slot = |all: &[f32]| -> Vec<[f32; 3]> {
+    // Each voxel's coefficients decode into a buffer on the stack (they are held as the cache
+    // stores them), then one dot product per channel.
+    let per_slot = |all: &Coefficients| -> Vec<[f32; 3]> {
         if stride == 0 {
             return vec![[0.0; 3]; transfer.layout.len()];
         }
-        all.par_chunks(stride)
+        (0..transfer.layout.len())
+            .into_par_iter()
             .with_min_len(SLOTS_PER_TASK)
-            .map(ls)
+            .map(|slot| {
+                let mut voxel = [0.0f32; MAX_COEFFS];
+                all.voxel(slot, &mut voxel[..stride]);
+                ls(&voxel[..stride])
+            })
             .collect()
     };
     let (mut direct, mut indirect) =
@@ -111,8 +119,8 @@ mod tests {
                 sigma_t: 1.0,
                 albedo: 1.0,
             },
-            t_ri,
-            f_ms,
+            t_ri: Coefficients::F32(t_ri),
+            f_ms: Coefficients::F32(f_ms),
             lattice: None,
         }
     }

@@ -19,7 +19,7 @@
 //! the file and its contents' sizes from the header's counts, and decompresses no more than a
 //! section really holds, so a truncated, padded or corrupted cache is a clear error.
 
-use std::io::Write;
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
 
 use glam::{DVec3, IVec3};
@@ -66,7 +66,6 @@ pub struct Source {
 impl Source {
     /// The identity of the file at `path` as it is now.
     pub fn of(path: &Path) -> Result<Source> {
-        use std::io::Read;
         let io = |e| Error::io(path, e);
         let file = std::fs::File::open(path).map_err(io)?;
         let meta = file.metadata().map_err(io)?;
@@ -314,7 +313,7 @@ pub fn write(
         })?;
         for values in [&transfer.t_ri, &transfer.f_ms] {
             put_section(&mut w, |s| {
-                packing::put_coefficients(s, values, coeffs, header.coefficients)
+                packing::put_coefficients(s, &values.to_f32(coeffs), coeffs, header.coefficients)
             })?;
         }
         let sum = w.hash.digest();
@@ -331,19 +330,24 @@ fn active_values(leaf: &Leaf) -> impl Iterator<Item = f32> + '_ {
         .map(|i| leaf.values[i])
 }
 
-/// The cache body after the header, section by section.
-struct Body<'a> {
-    bytes: &'a [u8],
+/// The cache body after the header, read section by section from a reader that has `left`
+/// bytes of it before the checksum: one compressed section is held at a time, never the file.
+struct Body<R: Read> {
+    reader: R,
+    left: u64,
 }
 
-impl<'a> Body<'a> {
-    fn take(&mut self, n: usize) -> std::result::Result<&'a [u8], String> {
-        if n > self.bytes.len() {
+impl<R: Read> Body<R> {
+    fn take(&mut self, n: usize) -> std::result::Result<Vec<u8>, String> {
+        if n as u64 > self.left {
             return Err("cache sections are shorter than their lengths say".into());
         }
-        let (a, b) = self.bytes.split_at(n);
-        self.bytes = b;
-        Ok(a)
+        self.left -= n as u64;
+        let mut out = vec![0u8; n];
+        self.reader
+            .read_exact(&mut out)
+            .map_err(|e| format!("cannot read a section: {e}"))?;
+        Ok(out)
     }
 
     fn f32(&mut self) -> std::result::Result<f32, String> {
@@ -351,20 +355,33 @@ impl<'a> Body<'a> {
         Ok(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
 
+    /// The next section's compressed frame.
+    fn frame(&mut self) -> std::result::Result<Vec<u8>, String> {
+        let mut len = [0u8; 8];
+        len.copy_from_slice(&self.take(8)?);
+        let len = usize::try_from(u64::from_le_bytes(len))
+            .map_err(|_| "a section's length is impossible".to_string())?;
+        self.take(len)
+    }
+
     /// The next section, decoded by `parse`, which must read all of it.
     fn section<T>(
         &mut self,
         parse: impl FnOnce(&mut SectionReader) -> std::result::Result<T, String>,
     ) -> std::result::Result<T, String> {
-        let mut len = [0u8; 8];
-        len.copy_from_slice(self.take(8)?);
-        let len = usize::try_from(u64::from_le_bytes(len))
-            .map_err(|_| "a section's length is impossible".to_string())?;
-        let mut reader = SectionReader::new(self.take(len)?)?;
-        let value = parse(&mut reader)?;
-        reader.finish()?;
-        Ok(value)
+        decode_frame(&self.frame()?, parse)
     }
+}
+
+/// `frame` decoded by `parse`, which must read all of it.
+fn decode_frame<T>(
+    frame: &[u8],
+    parse: impl FnOnce(&mut SectionReader) -> std::result::Result<T, String>,
+) -> std::result::Result<T, String> {
+    let mut reader = SectionReader::new(frame)?;
+    let value = parse(&mut reader)?;
+    reader.finish()?;
+    Ok(value)
 }
 
 /// Little-endian i32 triples from `bytes` (a multiple of 12 long).
@@ -387,7 +404,6 @@ fn records(r: &mut SectionReader, count: u64, size: usize) -> std::result::Resul
 /// Whether `path` starts with the cache magic (a short or unreadable file is not a cache here; the
 /// VDB reader then reports what is wrong with it).
 pub fn is_cache(path: &Path) -> Result<bool> {
-    use std::io::Read;
     let mut magic = [0u8; MAGIC.len()];
     let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     Ok(file.read_exact(&mut magic).is_ok() && &magic == MAGIC)
@@ -395,7 +411,6 @@ pub fn is_cache(path: &Path) -> Result<bool> {
 
 /// The format version of the cache at `path`; `None` when it does not start with the cache magic.
 pub fn format_version(path: &Path) -> Result<Option<u32>> {
-    use std::io::Read;
     let mut fixed = [0u8; MAGIC.len() + 4];
     let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     if file.read_exact(&mut fixed).is_err() || &fixed[..MAGIC.len()] != MAGIC {
@@ -454,7 +469,6 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
 /// a cache of an older format (stale: what a bake computes changed); an error for anything else
 /// that is not a cache of this format.
 pub fn read_header(path: &Path) -> Result<Option<Header>> {
-    use std::io::Read;
     if format_version(path)?.is_some_and(|v| v < VERSION) {
         return Ok(None);
     }
@@ -470,47 +484,81 @@ pub fn read_header(path: &Path) -> Result<Option<Header>> {
 
 /// Reads and verifies a whole cache.
 pub fn read(path: &Path) -> Result<Cache> {
-    let data = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    read_bytes(&data).map_err(|m| damaged(path, m))
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    read_from(std::io::BufReader::new(file), len).map_err(|m| damaged(path, m))
 }
 
 /// Reads a cache's header and verifies the checksum over the whole file, without decoding the
 /// data (for `info`: a damaged cache is reported as damaged, not described).
 pub fn verify(path: &Path) -> Result<Header> {
-    let data = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let check = || {
-        let (header, _) = parse_header(&data, data.len() as u64)?;
-        verify_checksum(&data)?;
-        Ok(header)
-    };
-    check().map_err(|m| damaged(path, m))
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    verified_header(&mut std::io::BufReader::new(file), len)
+        .map(|(header, _)| header)
+        .map_err(|m| damaged(path, m))
 }
 
-/// The xxh3 of everything before the last 8 bytes against those bytes (the caller has checked
-/// the length against the header).
-fn verify_checksum(data: &[u8]) -> std::result::Result<(), String> {
-    let split = data.len() - 8;
+/// Bytes hashed per read while the checksum is verified.
+const HASH_CHUNK: usize = 1 << 20;
+
+/// The header of the `len`-byte cache `source`, and where it ends, once the xxh3 of everything
+/// before the last 8 bytes has been checked against those bytes: streamed, so the check holds a
+/// chunk of the file, not the file.
+fn verified_header(
+    source: &mut (impl Read + Seek),
+    len: u64,
+) -> std::result::Result<(Header, usize), String> {
+    let io = |e: std::io::Error| format!("cannot read the cache: {e}");
+    let mut head = Vec::new();
+    source
+        .by_ref()
+        .take(FIXED as u64 + MAX_HEADER)
+        .read_to_end(&mut head)
+        .map_err(io)?;
+    let parsed = parse_header(&head, len)?;
+    // parse_header has checked that `len` holds the checksum.
+    let split = len - 8;
+    source.seek(SeekFrom::Start(0)).map_err(io)?;
+    let mut hash = Xxh3::new();
+    let mut chunk = vec![0u8; HASH_CHUNK];
+    let mut left = split;
+    while left > 0 {
+        let n = left.min(HASH_CHUNK as u64) as usize;
+        source.read_exact(&mut chunk[..n]).map_err(io)?;
+        hash.update(&chunk[..n]);
+        left -= n as u64;
+    }
     let mut sum = [0u8; 8];
-    sum.copy_from_slice(&data[split..]);
-    if xxhash_rust::xxh3::xxh3_64(&data[..split]) != u64::from_le_bytes(sum) {
+    source.read_exact(&mut sum).map_err(io)?;
+    if hash.digest() != u64::from_le_bytes(sum) {
         return Err("checksum mismatch: the cache is corrupted".into());
     }
-    Ok(())
+    Ok(parsed)
 }
 
-fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
-    let (header, start) = parse_header(data, data.len() as u64)?;
-    verify_checksum(data)?;
-    let split = data.len() - 8;
+/// Reads the `len`-byte cache `source`: the checksum first ([`verified_header`]), then the
+/// sections in order, the two coefficient sections decoded side by side.
+fn read_from(mut source: impl Read + Seek, len: u64) -> std::result::Result<Cache, String> {
+    let (header, start) = verified_header(&mut source, len)?;
+    source
+        .seek(SeekFrom::Start(start as u64))
+        .map_err(|e| format!("cannot read the cache: {e}"))?;
+    let body = Body {
+        reader: source,
+        left: len - 8 - start as u64,
+    };
+    decode(header, body)
+}
+
+/// The cache's data from `body`, which starts after the header.
+fn decode(header: Header, mut body: Body<impl Read>) -> std::result::Result<Cache, String> {
     let settings = header
         .settings()
         .ok_or("the header names an unknown lattice")?;
     let transform = Transform {
         scale: DVec3::from_array(header.voxel_scale),
         translation: DVec3::from_array(header.translation),
-    };
-    let mut body = Body {
-        bytes: &data[start..split],
     };
     let mut density = SparseGrid::new(transform, body.f32()?);
     let leaves = body.section(|r| records(r, header.leaves, LEAF_BYTES))?;
@@ -528,16 +576,10 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
         .iter()
         .map(|(_, m)| m.iter().map(|w| w.count_ones() as usize).sum::<usize>())
         .sum();
-    let values = body.section(|r| {
-        let mut values = Vec::new();
-        match header.density {
-            Precision::F32 => r.shuffled::<4>(active, |b| values.push(f32::from_le_bytes(b)))?,
-            Precision::F16 => r.shuffled::<2>(active, |b| {
-                values.push(half::f16::from_le_bytes(b).to_f32())
-            })?,
-            Precision::Q8 => return Err("the header's density precision is invalid".into()),
-        }
-        Ok(values)
+    let values = body.section(|r| match header.density {
+        Precision::F32 => r.values(active, f32::from_le_bytes),
+        Precision::F16 => r.values(active, |b| half::f16::from_le_bytes(b).to_f32()),
+        Precision::Q8 => Err("the header's density precision is invalid".into()),
     })?;
     let mut next = values.into_iter();
     for (origin, mask) in masks {
@@ -567,9 +609,15 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
         .ok_or("transfer voxels are repeated or out of order")?;
     let coeffs = settings.bands * settings.bands;
     let precision = header.coefficients;
-    let t_ri = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
-    let f_ms = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
-    if !body.bytes.is_empty() {
+    let frames = [body.frame()?, body.frame()?];
+    let get = |frame: &[u8]| {
+        decode_frame(frame, |r| {
+            packing::get_coefficients(r, layout.len(), coeffs, precision)
+        })
+    };
+    let (t_ri, f_ms) = rayon::join(|| get(&frames[0]), || get(&frames[1]));
+    let (t_ri, f_ms) = (t_ri?, f_ms?);
+    if body.left != 0 {
         return Err("padded: bytes follow the last section".into());
     }
     let transfer = Transfer {
@@ -593,6 +641,7 @@ fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::transfer::Coefficients;
 
     /// A tile, and a leaf of two active voxels (0.3 and `peak`) among inactive ones.
     fn tiny_with(precision: Precision, peak: f32) -> (SparseGrid, Transfer, Header) {
@@ -615,8 +664,8 @@ mod tests {
                 sigma_t: 2.0,
                 albedo: 0.5,
             },
-            t_ri: (0..n).map(|i| i as f32 * 0.25).collect(),
-            f_ms: (0..n).map(|i| -(i as f32)).collect(),
+            t_ri: Coefficients::F32((0..n).map(|i| i as f32 * 0.25).collect()),
+            f_ms: Coefficients::F32((0..n).map(|i| -(i as f32)).collect()),
             lattice: Some(LatticeKind::All),
         };
         let settings = BakeSettings {
@@ -639,6 +688,10 @@ mod tests {
         };
         let h = header(&g, &transfer, &settings, origin, precision);
         (g, transfer, h)
+    }
+
+    fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
+        read_from(std::io::Cursor::new(data), data.len() as u64)
     }
 
     fn tiny() -> (SparseGrid, Transfer, Header) {
@@ -681,7 +734,9 @@ mod tests {
             close(back.density.value(at(300)), peak, 0.0);
             assert_eq!(back.density.value(IVec3::new(0, 16, 6)), 0.0);
             assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
-            for (a, b) in back.transfer.t_ri.iter().zip(&t.t_ri) {
+            assert_eq!(back.transfer.t_ri.precision(), precision);
+            let (back_t_ri, t_ri) = (back.transfer.t_ri.to_f32(4), t.t_ri.to_f32(4));
+            for (a, b) in back_t_ri.iter().zip(t_ri.iter()) {
                 // Within q8's half step of a band scale (packing's tests bound each precision exactly).
                 close(*a, *b, b.abs().max(1.0) * 5e-3);
             }

@@ -274,7 +274,7 @@ pub fn image_bytes(width: u32, height: u32, png: bool) -> u64 {
 pub struct RenderEstimate {
     /// The density and its accelerators.
     pub volume: u64,
-    /// T_ri and F_ms (f32) and what relighting and the march keep per transfer voxel.
+    /// T_ri and F_ms as held and what relighting and the march keep per transfer voxel.
     pub transfer: u64,
     /// The march's share of `transfer`: held only after the suns are solved.
     march: u64,
@@ -288,12 +288,12 @@ pub struct RenderEstimate {
 }
 
 impl RenderEstimate {
-    /// `coefficients`: T_ri and F_ms values held; `light`: [`crate::scene::Scene::light_plan`];
+    /// `coefficient_bytes`: T_ri and F_ms as held; `light`: [`crate::scene::Scene::light_plan`];
     /// `solve`: [`sun_solve_bytes`] when a new sun will be solved; `image`: [`image_bytes`].
     pub fn new(
         field: &DensityField,
         transfer_voxels: usize,
-        coefficients: usize,
+        coefficient_bytes: usize,
         light: u64,
         solve: u64,
         image: u64,
@@ -301,7 +301,7 @@ impl RenderEstimate {
         let march = transfer_voxels as u64 * RENDER_BYTES_PER_TRANSFER_VOXEL;
         RenderEstimate {
             volume: (field.grid.memory_bytes() + field.accelerator_bytes()) as u64,
-            transfer: coefficients as u64 * 4 + march,
+            transfer: coefficient_bytes as u64 + march,
             march,
             light,
             solve,

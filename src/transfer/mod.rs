@@ -3,6 +3,8 @@
 //! scattering events (`f_ms`, thesis 4.2) — independent of any environment.
 
 pub mod cache;
+pub(crate) mod coefficients;
+pub use coefficients::Coefficients;
 mod fit;
 pub use fit::fitted_field;
 pub mod lattice;
@@ -38,9 +40,9 @@ pub struct Transfer {
     pub bands: usize,
     pub medium: Medium,
     /// Unscattered transfer T_ri, `layout.len() × bands²`.
-    pub t_ri: Vec<f32>,
+    pub t_ri: Coefficients,
     /// Multiply-scattered transfer F_ms (zero after a `--single-scatter` bake), same shape.
-    pub f_ms: Vec<f32>,
+    pub f_ms: Coefficients,
     /// The lattice that solved F_ms, and that solves the suns' multiple scattering (`None`: the
     /// bake was `--single-scatter`, and so is the suns' light).
     pub lattice: Option<lattice::LatticeKind>,
@@ -51,16 +53,9 @@ impl Transfer {
         self.bands * self.bands
     }
 
-    /// T_ri coefficients of the voxel in `slot`.
-    pub fn t_ri(&self, slot: usize) -> &[f32] {
-        let n = self.coeffs();
-        &self.t_ri[slot * n..(slot + 1) * n]
-    }
-
-    /// F_ms coefficients of the voxel in `slot`.
-    pub fn f_ms(&self, slot: usize) -> &[f32] {
-        let n = self.coeffs();
-        &self.f_ms[slot * n..(slot + 1) * n]
+    /// Bytes the coefficients hold.
+    pub fn coefficient_bytes(&self) -> usize {
+        self.t_ri.memory_bytes() + self.f_ms.memory_bytes()
     }
 }
 
@@ -162,8 +157,8 @@ pub fn bake(
         layout,
         bands: settings.bands,
         medium,
-        t_ri,
-        f_ms,
+        t_ri: Coefficients::F32(t_ri),
+        f_ms: Coefficients::F32(f_ms),
         lattice: (!settings.single_scatter).then_some(settings.lattice),
     };
     (transfer, stats)

@@ -10,13 +10,13 @@ use std::io::{Read, Write};
 
 use serde::{Deserialize, Serialize};
 
+use super::coefficients::{bands_of, Coefficients, Q8_MAX};
+
 /// zstd's level: the default, as fast as level 1 on these arrays and as small as level 15.
 const ZSTD_LEVEL: i32 = 3;
 /// Values shuffled together: large enough that each byte plane is a long run for zstd, small
 /// enough that writing never holds more than a chunk uncompressed.
 const CHUNK_VALUES: usize = 1 << 14;
-/// The largest magnitude of a q8 coefficient: 8-bit signed, symmetric.
-const Q8_MAX: f32 = 127.0;
 
 /// How a cache stores the transfer's coefficients (and with them, where it fits, the density).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -127,34 +127,37 @@ impl<'a> SectionReader<'a> {
     /// The next `n` bytes. The buffer grows only as data arrives, so a count that lies costs no
     /// more memory than the section really holds.
     pub fn bytes(&mut self, n: usize) -> Parse<Vec<u8>> {
-        let mut out = Vec::new();
-        (&mut self.decoder)
-            .take(n as u64)
-            .read_to_end(&mut out)
-            .map_err(|e| format!("a compressed section is damaged: {e}"))?;
-        if out.len() != n {
-            return Err("a compressed section is shorter than the header says".into());
-        }
-        Ok(out)
+        self.values::<1, u8>(n, |[b]| b)
     }
 
-    /// `n` values of `W` bytes, shuffled as [`SectionWriter::shuffled`] wrote them, each passed
-    /// to `each` in order.
-    pub fn shuffled<const W: usize>(
+    /// `n` values of `W` bytes, shuffled as [`SectionWriter::shuffled`] wrote them, each decoded
+    /// by `decode`. The output grows a chunk at a time up to `n`, doubling at most, so a count
+    /// that lies costs no more than twice what the section really holds and a true count ends
+    /// with nothing spare.
+    pub fn values<const W: usize, T>(
         &mut self,
         n: usize,
-        mut each: impl FnMut([u8; W]),
-    ) -> Parse<()> {
-        let mut left = n;
-        while left > 0 {
-            let m = left.min(CHUNK_VALUES);
-            let planes = self.bytes(m * W)?;
-            for i in 0..m {
-                each(std::array::from_fn(|b| planes[b * m + i]));
+        decode: impl Fn([u8; W]) -> T,
+    ) -> Parse<Vec<T>> {
+        let mut out: Vec<T> = Vec::new();
+        let mut planes = vec![0u8; n.min(CHUNK_VALUES) * W];
+        while out.len() < n {
+            let m = (n - out.len()).min(CHUNK_VALUES);
+            let planes = &mut planes[..m * W];
+            self.decoder
+                .read_exact(planes)
+                .map_err(|e| match e.kind() {
+                    std::io::ErrorKind::UnexpectedEof => {
+                        "a compressed section is shorter than the header says".to_string()
+                    }
+                    _ => format!("a compressed section is damaged: {e}"),
+                })?;
+            if out.capacity() - out.len() < m {
+                out.reserve_exact((n - out.len()).min(out.len().max(m)));
             }
-            left -= m;
+            out.extend((0..m).map(|i| decode(std::array::from_fn(|b| planes[b * m + i]))));
         }
-        Ok(())
+        Ok(out)
     }
 
     /// Checks that the section holds nothing more.
@@ -202,47 +205,27 @@ pub fn put_coefficients(
     }
 }
 
-/// Reads what [`put_coefficients`] wrote for `voxels` voxels.
+/// Reads what [`put_coefficients`] wrote for `voxels` voxels, held at the precision it was
+/// stored in.
 pub fn get_coefficients(
     r: &mut SectionReader,
     voxels: usize,
     coeffs: usize,
     precision: Precision,
-) -> Parse<Vec<f32>> {
+) -> Parse<Coefficients> {
     let n = voxels
         .checked_mul(coeffs)
         .ok_or("the header's counts are impossible")?;
-    let mut out = Vec::new();
-    match precision {
-        Precision::F32 => r.shuffled::<4>(n, |b| out.push(f32::from_le_bytes(b)))?,
-        Precision::F16 => r.shuffled::<2>(n, |b| out.push(half::f16::from_le_bytes(b).to_f32()))?,
-        Precision::Q8 => {
-            let bands = bands_of(coeffs);
-            let mut dc = Vec::new();
-            r.shuffled::<2>(voxels, |b| dc.push(half::f16::from_le_bytes(b).to_f32()))?;
-            let mut scales = Vec::new();
-            let per_voxel = bands - 1;
-            r.shuffled::<2>(voxels * per_voxel, |b| {
-                scales.push(half::f16::from_le_bytes(b).to_f32())
-            })?;
-            let bytes = r.bytes(voxels * (coeffs - 1))?;
-            out.reserve_exact(n);
-            let mut q = bytes.iter();
-            for (x, dc) in dc.iter().enumerate() {
-                out.push(*dc);
-                for l in 1..bands {
-                    let s = scales[x * per_voxel + l - 1] / Q8_MAX;
-                    out.extend(q.by_ref().take(2 * l + 1).map(|b| *b as i8 as f32 * s));
-                }
-            }
-        }
-    }
-    Ok(out)
-}
-
-/// Bands of a voxel with `coeffs` = bands² coefficients.
-fn bands_of(coeffs: usize) -> usize {
-    (1..).find(|b| b * b >= coeffs).unwrap_or(1)
+    let f16s = |r: &mut SectionReader, n| r.values(n, half::f16::from_le_bytes);
+    Ok(match precision {
+        Precision::F32 => Coefficients::F32(r.values(n, f32::from_le_bytes)?),
+        Precision::F16 => Coefficients::F16(f16s(r, n)?),
+        Precision::Q8 => Coefficients::Q8 {
+            dc: f16s(r, voxels)?,
+            scales: f16s(r, voxels * (bands_of(coeffs) - 1))?,
+            bytes: r.values(voxels * (coeffs - 1), i8::from_le_bytes)?,
+        },
+    })
 }
 
 /// Band l's 2l + 1 coefficients of one voxel.
@@ -281,7 +264,8 @@ mod tests {
         let mut r = SectionReader::new(&frame).unwrap();
         let out = get_coefficients(&mut r, values.len() / coeffs, coeffs, precision).unwrap();
         r.finish().unwrap();
-        out
+        assert_eq!(out.precision(), precision);
+        out.to_f32(coeffs).into_owned()
     }
 
     /// Pseudo-random coefficients of `voxels` voxels at 3 bands, spanning several magnitudes.

@@ -1,0 +1,156 @@
+//! The transfer's coefficients as held in memory: f32 as a bake makes them, or in the reduced
+//! precision a cache stores them ([`Precision`]), decoded a voxel at a time where they are used.
+//!
+//! A render from a cache needs the coefficients only to relight, and a relight reads each voxel's
+//! once; holding an f16 or q8 cache's coefficients as f32 doubled or tripled the largest thing a
+//! render of a big cloud holds, for values that are the cache's own either way. So a reduced cache
+//! is held as it is stored and every value decodes to exactly the f32 it always read back as.
+
+use std::borrow::Cow;
+
+use half::f16;
+use half::slice::HalfFloatSliceExt;
+
+use super::packing::Precision;
+use crate::light::sh::MAX_BANDS;
+
+/// The largest magnitude of a q8 coefficient: 8-bit signed, symmetric.
+pub const Q8_MAX: f32 = 127.0;
+
+/// The most coefficients a voxel holds: what one voxel decodes into on the stack.
+pub const MAX_COEFFS: usize = MAX_BANDS * MAX_BANDS;
+
+/// `coeffs` coefficients per voxel, voxel after voxel.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Coefficients {
+    F32(Vec<f32>),
+    F16(Vec<f16>),
+    /// Per voxel an f16 DC term; per voxel and band l ≥ 1 an f16 scale s and 2l + 1 signed bytes
+    /// q, the coefficient being q·s/127 ([`super::packing::put_coefficients`]).
+    Q8 {
+        dc: Vec<f16>,
+        scales: Vec<f16>,
+        bytes: Vec<i8>,
+    },
+}
+
+impl Coefficients {
+    /// Values held: voxels × coefficients per voxel.
+    pub fn len(&self) -> usize {
+        match self {
+            Coefficients::F32(v) => v.len(),
+            Coefficients::F16(v) => v.len(),
+            Coefficients::Q8 { dc, bytes, .. } => dc.len() + bytes.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// How the values are held.
+    pub fn precision(&self) -> Precision {
+        match self {
+            Coefficients::F32(_) => Precision::F32,
+            Coefficients::F16(_) => Precision::F16,
+            Coefficients::Q8 { .. } => Precision::Q8,
+        }
+    }
+
+    /// Bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        match self {
+            Coefficients::F32(v) => v.len() * 4,
+            Coefficients::F16(v) => v.len() * 2,
+            Coefficients::Q8 { dc, scales, bytes } => (dc.len() + scales.len()) * 2 + bytes.len(),
+        }
+    }
+
+    /// Bytes `values` values with `coeffs` per voxel take held at `precision`: what
+    /// [`Coefficients::memory_bytes`] will be, before they are read.
+    pub fn bytes_at(precision: Precision, values: usize, coeffs: usize) -> usize {
+        match precision {
+            Precision::F32 => values * 4,
+            Precision::F16 => values * 2,
+            Precision::Q8 => {
+                let voxels = values / coeffs.max(1);
+                let bands = bands_of(coeffs);
+                voxels * 2 * bands + voxels * (coeffs - 1)
+            }
+        }
+    }
+
+    /// Voxel `slot`'s `out.len()` coefficients (`coeffs` per voxel) as f32, written to `out`.
+    pub fn voxel(&self, slot: usize, out: &mut [f32]) {
+        let n = out.len();
+        match self {
+            Coefficients::F32(v) => out.copy_from_slice(&v[slot * n..(slot + 1) * n]),
+            Coefficients::F16(v) => v[slot * n..(slot + 1) * n].convert_to_f32_slice(out),
+            Coefficients::Q8 { dc, scales, bytes } => {
+                let bands = bands_of(n);
+                let per_voxel = bands - 1;
+                out[0] = dc[slot].to_f32();
+                let q = &bytes[slot * (n - 1)..(slot + 1) * (n - 1)];
+                for l in 1..bands {
+                    let s = scales[slot * per_voxel + l - 1].to_f32() / Q8_MAX;
+                    let (lo, hi) = (l * l, (l + 1) * (l + 1));
+                    for (o, b) in out[lo..hi].iter_mut().zip(&q[lo - 1..hi - 1]) {
+                        *o = *b as f32 * s;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Every value as f32 (borrowed when held so).
+    pub fn to_f32(&self, coeffs: usize) -> Cow<'_, [f32]> {
+        match self {
+            Coefficients::F32(v) => Cow::Borrowed(v),
+            _ => {
+                let mut out = vec![0.0; self.len()];
+                for (slot, voxel) in out.chunks_exact_mut(coeffs.max(1)).enumerate() {
+                    self.voxel(slot, voxel);
+                }
+                Cow::Owned(out)
+            }
+        }
+    }
+}
+
+/// Bands of a voxel with `coeffs` = bands² coefficients.
+pub fn bands_of(coeffs: usize) -> usize {
+    (1..).find(|b| b * b >= coeffs).unwrap_or(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_precision_decodes_each_voxel_as_stored() {
+        // Two voxels of 2 bands: DC, then band 1's three coefficients.
+        let f32s = vec![1.0, -0.5, 0.25, 2.0, 3.0, 0.0, 0.0, -1.0];
+        let held = [
+            Coefficients::F32(f32s.clone()),
+            Coefficients::F16(f32s.iter().map(|v| f16::from_f32(*v)).collect()),
+            Coefficients::Q8 {
+                dc: vec![f16::from_f32(1.0), f16::from_f32(3.0)],
+                // Scales of 31.75 make q·s/127 = q/4 exactly.
+                scales: vec![f16::from_f32(31.75); 2],
+                bytes: vec![-2, 1, 8, 0, 0, -4],
+            },
+        ];
+        for c in &held {
+            assert_eq!(c.len(), 8);
+            assert_eq!(c.to_f32(4).as_ref(), &f32s[..], "{:?}", c.precision());
+            let mut one = [0.0; 4];
+            c.voxel(1, &mut one);
+            assert_eq!(one, [3.0, 0.0, 0.0, -1.0]);
+            assert_eq!(
+                c.memory_bytes(),
+                Coefficients::bytes_at(c.precision(), 8, 4)
+            );
+        }
+        assert_eq!(held.map(|c| c.memory_bytes()), [32, 16, 14]);
+    }
+}
