@@ -19,7 +19,7 @@
 //! the file and its contents' sizes from the header's counts, and decompresses no more than a
 //! section really holds, so a truncated, padded or corrupted cache is a clear error.
 
-use std::io::{Read, Seek, SeekFrom, Write};
+use std::io::{BufRead, Read, Seek, SeekFrom, Write};
 use std::path::Path;
 
 use glam::{DVec3, IVec3};
@@ -331,37 +331,25 @@ fn active_values(leaf: &Leaf) -> impl Iterator<Item = f32> + '_ {
 }
 
 /// The cache body after the header, read section by section from a reader that has `left`
-/// bytes of it before the checksum: one compressed section is held at a time, never the file.
-struct Body<R: Read> {
+/// bytes of it before the checksum: each section is decompressed as it streams in, so a read
+/// holds the decoded data and a buffer, never the file or a compressed section.
+struct Body<R: BufRead> {
     reader: R,
     left: u64,
 }
 
-impl<R: Read> Body<R> {
-    fn take(&mut self, n: usize) -> std::result::Result<Vec<u8>, String> {
-        if n as u64 > self.left {
+impl<R: BufRead> Body<R> {
+    /// The next `N` bytes.
+    fn fixed<const N: usize>(&mut self) -> std::result::Result<[u8; N], String> {
+        if N as u64 > self.left {
             return Err("cache sections are shorter than their lengths say".into());
         }
-        self.left -= n as u64;
-        let mut out = vec![0u8; n];
+        self.left -= N as u64;
+        let mut out = [0u8; N];
         self.reader
             .read_exact(&mut out)
-            .map_err(|e| format!("cannot read a section: {e}"))?;
+            .map_err(|e| format!("cannot read the cache: {e}"))?;
         Ok(out)
-    }
-
-    fn f32(&mut self) -> std::result::Result<f32, String> {
-        let b = self.take(4)?;
-        Ok(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-    }
-
-    /// The next section's compressed frame.
-    fn frame(&mut self) -> std::result::Result<Vec<u8>, String> {
-        let mut len = [0u8; 8];
-        len.copy_from_slice(&self.take(8)?);
-        let len = usize::try_from(u64::from_le_bytes(len))
-            .map_err(|_| "a section's length is impossible".to_string())?;
-        self.take(len)
     }
 
     /// The next section, decoded by `parse`, which must read all of it.
@@ -369,19 +357,23 @@ impl<R: Read> Body<R> {
         &mut self,
         parse: impl FnOnce(&mut SectionReader) -> std::result::Result<T, String>,
     ) -> std::result::Result<T, String> {
-        decode_frame(&self.frame()?, parse)
+        let len = u64::from_le_bytes(self.fixed()?);
+        if len > self.left {
+            return Err("cache sections are shorter than their lengths say".into());
+        }
+        self.left -= len;
+        let mut frame = (&mut self.reader).take(len);
+        let value = {
+            let mut reader = SectionReader::new(&mut frame)?;
+            let value = parse(&mut reader)?;
+            reader.finish()?;
+            value
+        };
+        if frame.limit() != 0 {
+            return Err("a compressed section is shorter than its length says".into());
+        }
+        Ok(value)
     }
-}
-
-/// `frame` decoded by `parse`, which must read all of it.
-fn decode_frame<T>(
-    frame: &[u8],
-    parse: impl FnOnce(&mut SectionReader) -> std::result::Result<T, String>,
-) -> std::result::Result<T, String> {
-    let mut reader = SectionReader::new(frame)?;
-    let value = parse(&mut reader)?;
-    reader.finish()?;
-    Ok(value)
 }
 
 /// Little-endian i32 triples from `bytes` (a multiple of 12 long).
@@ -538,8 +530,8 @@ fn verified_header(
 }
 
 /// Reads the `len`-byte cache `source`: the checksum first ([`verified_header`]), then the
-/// sections in order, the two coefficient sections decoded side by side.
-fn read_from(mut source: impl Read + Seek, len: u64) -> std::result::Result<Cache, String> {
+/// sections in order.
+fn read_from(mut source: impl BufRead + Seek, len: u64) -> std::result::Result<Cache, String> {
     let (header, start) = verified_header(&mut source, len)?;
     source
         .seek(SeekFrom::Start(start as u64))
@@ -552,7 +544,7 @@ fn read_from(mut source: impl Read + Seek, len: u64) -> std::result::Result<Cach
 }
 
 /// The cache's data from `body`, which starts after the header.
-fn decode(header: Header, mut body: Body<impl Read>) -> std::result::Result<Cache, String> {
+fn decode(header: Header, mut body: Body<impl BufRead>) -> std::result::Result<Cache, String> {
     let settings = header
         .settings()
         .ok_or("the header names an unknown lattice")?;
@@ -560,7 +552,7 @@ fn decode(header: Header, mut body: Body<impl Read>) -> std::result::Result<Cach
         scale: DVec3::from_array(header.voxel_scale),
         translation: DVec3::from_array(header.translation),
     };
-    let mut density = SparseGrid::new(transform, body.f32()?);
+    let mut density = SparseGrid::new(transform, f32::from_le_bytes(body.fixed()?));
     let leaves = body.section(|r| records(r, header.leaves, LEAF_BYTES))?;
     let masks: Vec<(IVec3, [u64; 8])> = leaves
         .chunks_exact(LEAF_BYTES)
@@ -609,14 +601,8 @@ fn decode(header: Header, mut body: Body<impl Read>) -> std::result::Result<Cach
         .ok_or("transfer voxels are repeated or out of order")?;
     let coeffs = settings.bands * settings.bands;
     let precision = header.coefficients;
-    let frames = [body.frame()?, body.frame()?];
-    let get = |frame: &[u8]| {
-        decode_frame(frame, |r| {
-            packing::get_coefficients(r, layout.len(), coeffs, precision)
-        })
-    };
-    let (t_ri, f_ms) = rayon::join(|| get(&frames[0]), || get(&frames[1]));
-    let (t_ri, f_ms) = (t_ri?, f_ms?);
+    let t_ri = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
+    let f_ms = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
     if body.left != 0 {
         return Err("padded: bytes follow the last section".into());
     }

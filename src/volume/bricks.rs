@@ -64,27 +64,31 @@ pub struct Bricks {
 
 impl Bricks {
     pub fn build(grid: &SparseGrid) -> Bricks {
-        // Each entry is independent: built in parallel, then numbered in key order (deterministic).
-        // `Ok` is a uniform value, `Err` a brick.
-        let built: Vec<(IVec3, Result<f32, Box<Brick>>)> = keys(grid)
+        // Which entries are uniform is decided in parallel; the bricks are then numbered in key
+        // order (deterministic) and filled in parallel in place, so the build holds the bricks
+        // once, never a copy of them.
+        let keys = keys(grid);
+        let uniform: Vec<Option<f32>> = keys
             .par_iter()
-            .map(|&key| {
-                let blocks = window(grid, key);
-                (key, uniform(&blocks).ok_or_else(|| fill(&blocks)))
-            })
+            .map(|&key| uniform(&window(grid, key)))
             .collect();
-        let mut entries = HashMap::with_capacity(built.len());
-        let mut values = Vec::with_capacity(built.iter().filter(|(_, b)| b.is_err()).count());
-        for (key, b) in built {
-            let entry = match b {
-                Ok(v) => Entry::Uniform(v),
-                Err(brick) => {
-                    values.push(*brick);
-                    Entry::Brick(values.len() as u32 - 1)
+        let mut entries = HashMap::with_capacity(keys.len());
+        let mut brick_keys = Vec::new();
+        for (&key, u) in keys.iter().zip(&uniform) {
+            let entry = match u {
+                Some(v) => Entry::Uniform(*v),
+                None => {
+                    brick_keys.push(key);
+                    Entry::Brick(brick_keys.len() as u32 - 1)
                 }
             };
             entries.insert(key, entry);
         }
+        let mut values = vec![[0.0; BRICK_VOXELS]; brick_keys.len()];
+        values
+            .par_iter_mut()
+            .zip(&brick_keys)
+            .for_each(|(brick, &key)| fill(&window(grid, key), brick));
         let node_tiles = grid
             .tiles(TileLevel::Node)
             .map(|(origin, v)| (origin >> TileLevel::Node.log2() as i32, v))
@@ -127,7 +131,7 @@ fn keys(grid: &SparseGrid) -> Vec<IVec3> {
             (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
         })
         .collect();
-    keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
+    keys.par_sort_unstable_by_key(|k| (k.x, k.y, k.z));
     keys.dedup();
     keys
 }
@@ -152,9 +156,9 @@ fn uniform(blocks: &[Block; 8]) -> Option<f32> {
     blocks.iter().all(same).then_some(first)
 }
 
-/// The 9³ values `8B + [0, 8]³` from block B and its upper neighbours (`blocks` in [`corner`] order).
-fn fill(blocks: &[Block; 8]) -> Box<Brick> {
-    let mut out = Box::new([0.0; BRICK_VOXELS]);
+/// Writes to `out` the 9³ values `8B + [0, 8]³` from block B and its upper neighbours (`blocks`
+/// in [`corner`] order).
+fn fill(blocks: &[Block; 8], out: &mut Brick) {
     let dim = LEAF_DIM as usize;
     let mut s = 0;
     for x in 0..BRICK_DIM {
@@ -170,7 +174,6 @@ fn fill(blocks: &[Block; 8]) -> Box<Brick> {
             }
         }
     }
-    out
 }
 
 /// One ray's sampler over [`Bricks`]: the entry of the last block sampled is kept, so the hash

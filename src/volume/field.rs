@@ -16,8 +16,9 @@ pub struct DensityField {
 
 impl DensityField {
     pub fn new(grid: SparseGrid) -> DensityField {
-        let occupancy = Occupancy::build(&grid);
-        let bricks = Bricks::build(&grid);
+        // Side by side: each has serial parts (hash maps filled in key order) the other's
+        // parallel work fills in around.
+        let (occupancy, bricks) = rayon::join(|| Occupancy::build(&grid), || Bricks::build(&grid));
         DensityField {
             grid,
             occupancy,
