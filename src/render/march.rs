@@ -20,7 +20,6 @@
 use std::ops::ControlFlow;
 
 use glam::{DVec3, IVec3, Vec3};
-use hashbrown::HashMap;
 use indicatif::ProgressBar;
 
 use crate::math::floor::floor_split;
@@ -30,7 +29,6 @@ use crate::render::film::{self, Background, RayResult};
 use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout, PHASE};
 use crate::volume::bricks::BrickSampler;
-use crate::volume::grid::corner;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
 use crate::volume::visibility::Visibility;
 use crate::volume::DensityField;
@@ -182,9 +180,11 @@ pub struct TransferRadiance<'a> {
     /// corner — and a last all-zero record that missing corners point at, so a corner needs no
     /// test.
     nodes: Vec<[f32; 7]>,
-    /// Per interpolation cell (key = its lowest transfer voxel), the records of its eight
-    /// corners: one hash lookup when a ray enters a cell instead of eight.
-    cells: HashMap<IVec3, [u32; 8]>,
+    /// Where each transfer voxel's record is: a ray entering an interpolation cell finds its
+    /// eight corners' records there ([`TransferLayout::cell`]).
+    layout: &'a TransferLayout,
+    /// The all-zero record missing corners point at.
+    missing: u32,
     visibility: Option<&'a Visibility>,
 }
 
@@ -198,7 +198,7 @@ const MAX_VISIBILITY_RATIO: f32 = 4.0;
 impl<'a> TransferRadiance<'a> {
     /// `visibility`: the density's V with its fitted value per slot (`None`: plain interpolation).
     pub fn new(
-        layout: &TransferLayout,
+        layout: &'a TransferLayout,
         radiance: &Radiance,
         visibility: Option<(&'a Visibility, &[f32])>,
     ) -> Self {
@@ -215,16 +215,11 @@ impl<'a> TransferRadiance<'a> {
         // A missing corner's data reads as zero; the apron makes that rare inside the medium.
         let missing = nodes.len() as u32;
         nodes.push([0.0; 7]);
-        let mut cells: HashMap<IVec3, [u32; 8]> = HashMap::with_capacity(layout.len() * 2);
-        for (slot, v) in layout.voxels().iter().enumerate() {
-            for n in 0..8 {
-                cells.entry(*v - corner(n)).or_insert([missing; 8])[n] = slot as u32;
-            }
-        }
         TransferRadiance {
             inv_k: 1.0 / layout.k as f32,
             nodes,
-            cells,
+            layout,
+            missing,
             visibility: visibility.map(|(v, _)| v),
         }
     }
@@ -279,7 +274,7 @@ impl<'a> InScatter for TransferRadiance<'a> {
         if sum.base != Some(b) {
             self.flush(sum);
             sum.base = Some(b);
-            sum.slots = self.cells.get(&b).copied();
+            sum.slots = self.layout.cell(b, self.missing);
         }
         let g = Vec3::ONE - f;
         // Corner n has x = bit 2, y = bit 1, z = bit 0 (`corner`).

@@ -370,7 +370,7 @@ impl<R: BufRead> Body<R> {
             value
         };
         if frame.limit() != 0 {
-            return Err("a compressed section is shorter than its length says".into());
+            return Err("a compressed section holds bytes past its data".into());
         }
         Ok(value)
     }

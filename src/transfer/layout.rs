@@ -10,7 +10,7 @@
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
 
-use crate::volume::grid::{slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
+use crate::volume::grid::{corner, slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
 
 /// log2 of a tile's edge in transfer voxels: 4³ = 64 voxels, one 64-bit occupancy word.
 pub const TILE_LOG2: i32 = 2;
@@ -18,6 +18,16 @@ const TILE_DIM: i32 = 1 << TILE_LOG2;
 const TILE_VOXELS: usize = 1 << (3 * TILE_LOG2);
 /// Marks a tile position with no transfer voxel.
 const EMPTY: u32 = u32::MAX;
+/// Offset of corner `n` ([`corner`]) from a cell's lower corner in a tile's slot array.
+const CELL_OFFSETS: [usize; 8] = {
+    let mut o = [0; 8];
+    let mut n = 0;
+    while n < 8 {
+        o[n] = ((n >> 2) << (2 * TILE_LOG2)) | (((n >> 1) & 1) << TILE_LOG2) | (n & 1);
+        n += 1;
+    }
+    o
+};
 
 /// Which transfer voxels exist and where their data lives.
 #[derive(Clone)]
@@ -161,6 +171,33 @@ impl TransferLayout {
     pub fn slot(&self, v: IVec3) -> Option<usize> {
         let s = self.tiles.get(&(v >> TILE_LOG2))?[tile_local(v)];
         (s != EMPTY).then_some(s as usize)
+    }
+
+    /// The slots of the eight corners `b + {0,1}³` of an interpolation cell, in the order of
+    /// [`crate::volume::grid::corner`], `missing` where a corner has no transfer voxel; `None`
+    /// when none has. A cell inside one tile (27 of 64 cell positions per tile, and most of
+    /// the cells a ray crosses) costs one lookup.
+    #[inline]
+    pub fn cell(&self, b: IVec3, missing: u32) -> Option<[u32; 8]> {
+        let mut slots = [EMPTY; 8];
+        if (b & (TILE_DIM - 1)).cmplt(IVec3::splat(TILE_DIM - 1)).all() {
+            let tile = self.tiles.get(&(b >> TILE_LOG2))?;
+            let base = tile_local(b);
+            for (n, s) in slots.iter_mut().enumerate() {
+                *s = tile[base + CELL_OFFSETS[n]];
+            }
+        } else {
+            for (n, s) in slots.iter_mut().enumerate() {
+                let c = b + corner(n);
+                if let Some(tile) = self.tiles.get(&(c >> TILE_LOG2)) {
+                    *s = tile[tile_local(c)];
+                }
+            }
+        }
+        slots
+            .iter()
+            .any(|&s| s != EMPTY)
+            .then(|| slots.map(|s| if s == EMPTY { missing } else { s }))
     }
 
     /// Density index-space position of transfer voxel `v`.
