@@ -226,3 +226,33 @@ fn breaking_stops_the_walk() {
     });
     assert_eq!(seen, 1);
 }
+
+#[test]
+fn dense_and_hashed_marks_agree() {
+    // Overlapping boxes with different maxima and parts, compact enough for the dense marks, and
+    // the same boxes spread far apart, which go to the map: both give each box's blocks exactly
+    // as marking them one by one into a map does.
+    let compact = [
+        (IVec3::new(0, 0, 0), IVec3::new(7, 7, 7), 0.5),
+        (IVec3::new(8, 2, 3), IVec3::new(9, 5, 15), 2.0),
+        (IVec3::new(-5, 4, 1), IVec3::new(-1, 4, 1), 1.5),
+    ];
+    let far = |i: i32| IVec3::new(i * 4096, -i * 2048, i * 1024);
+    let spread: Vec<_> = (0..)
+        .zip(compact)
+        .map(|(i, (lo, hi, v))| (lo + far(i), hi + far(i), v))
+        .collect();
+    for boxes in [&compact[..], &spread[..]] {
+        let mut one_by_one = HashMap::new();
+        let d = IVec3::splat(DILATION);
+        for &(lo, hi, v) in boxes {
+            mark_box(&mut one_by_one, lo - d, hi + d, v);
+        }
+        let mut marked = HashMap::new();
+        mark_boxes(&mut marked, boxes);
+        assert_eq!(marked, one_by_one);
+    }
+    let mut none = HashMap::new();
+    mark_boxes(&mut none, &[]);
+    assert!(none.is_empty());
+}
