@@ -574,6 +574,7 @@ fn decode(header: Header, mut body: Body<impl BufRead>) -> std::result::Result<C
         Precision::Q8 => Err("the header's density precision is invalid".into()),
     })?;
     let mut next = values.into_iter();
+    density.reserve_leaves(masks.len());
     for (origin, mask) in masks {
         let mut array = [density.background; LEAF_VOXELS];
         for (i, v) in array.iter_mut().enumerate() {

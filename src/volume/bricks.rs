@@ -157,22 +157,22 @@ fn uniform(blocks: &[Block; 8]) -> Option<f32> {
 }
 
 /// Writes to `out` the 9³ values `8B + [0, 8]³` from block B and its upper neighbours (`blocks`
-/// in [`corner`] order).
+/// in [`corner`] order), a row along z at a time: the block's eight values, then the apron's one.
 fn fill(blocks: &[Block; 8], out: &mut Brick) {
     let dim = LEAF_DIM as usize;
-    let mut s = 0;
-    for x in 0..BRICK_DIM {
-        for y in 0..BRICK_DIM {
-            for z in 0..BRICK_DIM {
-                // The apron (coordinate 8) is coordinate 0 of the next block along that axis.
-                let n = ((x / dim) << 2) | ((y / dim) << 1) | (z / dim);
-                out[s] = match blocks[n] {
-                    Block::Leaf(leaf) => leaf.values[((x % dim) * dim + y % dim) * dim + z % dim],
-                    Block::Constant(c) => c,
-                };
-                s += 1;
-            }
+    for (row, out) in out.chunks_exact_mut(BRICK_DIM).enumerate() {
+        // The apron (coordinate 8) is coordinate 0 of the next block along that axis.
+        let (x, y) = (row / BRICK_DIM, row % BRICK_DIM);
+        let n = ((x / dim) << 2) | ((y / dim) << 1);
+        let start = ((x % dim) * dim + y % dim) * dim;
+        match blocks[n] {
+            Block::Leaf(leaf) => out[..dim].copy_from_slice(&leaf.values[start..start + dim]),
+            Block::Constant(c) => out[..dim].fill(c),
         }
+        out[dim] = match blocks[n | 1] {
+            Block::Leaf(leaf) => leaf.values[start],
+            Block::Constant(c) => c,
+        };
     }
 }
 

@@ -198,6 +198,12 @@ impl SparseGrid {
         }
     }
 
+    /// Room for `n` more leaves, so adding a known number of them moves none.
+    pub fn reserve_leaves(&mut self, n: usize) {
+        self.leaves.reserve_exact(n);
+        self.leaf_index.reserve(n);
+    }
+
     /// Adds a leaf; `values` in slot order ([`Leaf::new`]).
     pub fn insert_leaf(&mut self, origin: IVec3, mask: [u64; 8], values: [f32; LEAF_VOXELS]) {
         let leaf = Leaf::new(origin, mask, values, self.background);
