@@ -235,10 +235,8 @@ impl BakePlan {
 }
 
 /// Bytes per transfer voxel a render holds beside T_ri and F_ms: the relit direct and indirect
-/// RGB (24), the march's node records (7 f32, 28) and its share of the interpolation cells' hash
-/// map (about 1.3 cells per voxel in a table sized for two, 12 + 32 bytes and a control byte
-/// each, at most 7/8 full: ≈ 105).
-const RENDER_BYTES_PER_TRANSFER_VOXEL: u64 = 24 + 28 + 105;
+/// RGB (24) and the march's node records (7 f32, 28).
+const RENDER_BYTES_PER_TRANSFER_VOXEL: u64 = 24 + 28;
 /// Bytes per pixel of a frame: RGBA, the direct and indirect RGB layers and depth, f32 each.
 const FRAME_BYTES_PER_PIXEL: u64 = 4 * (4 + 3 + 3 + 1);
 /// Bands of rows an EXR write holds at once: the one being rendered, the one being compressed,
@@ -249,10 +247,10 @@ const PNG_BANDS_IN_FLIGHT: u64 = 2;
 /// A render's process before it reads anything: code, thread stacks, the allocator (a 16×9
 /// render of the 1.4 MB fixture's cache peaks at 13.7 MiB, 5.4 MiB of it volume and transfer).
 const RENDER_BASELINE: u64 = 8 << 20;
-/// Resident memory beyond the volume and the transfer, per byte of them: buffers of the cache
-/// read and the field's build freed but kept by the allocator, measured 0.0–0.44 of them at
-/// 16×9 on the bench caches (0.19 on the 21 M-voxel cloud, docs/benchmarks.md "Render memory").
-const RENDER_SLACK: f64 = 0.2;
+/// Resident memory beyond the volume and the transfer, per byte of them: what the allocator keeps
+/// of the cache read and the field's build, measured 0.0–0.13 of them at 16×9 on the bench caches
+/// (0.10 and 0.07 on the half-size cloud's q8 and f32 caches, docs/benchmarks.md "Render memory").
+const RENDER_SLACK: f64 = 0.1;
 
 /// Bytes the image of a `width`×`height` render holds while it is rendered and written
 /// ([`crate::io::image::write_bands`]): a few bands of rows for an EXR, one band and the whole
