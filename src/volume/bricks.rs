@@ -20,6 +20,7 @@ use hashbrown::HashMap;
 use rayon::prelude::*;
 
 use crate::math::floor::floor_split;
+use crate::volume::dense_box::DenseBox;
 use crate::volume::grid::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 use crate::volume::sampler::BlockSampler;
 
@@ -118,19 +119,29 @@ impl Bricks {
 }
 
 /// The blocks that get an entry: every block within one of a leaf or a block tile, sorted
-/// (x-major, as leaves are stored) so neighbouring bricks sit near each other.
+/// (x-major, as leaves are stored) so neighbouring bricks sit near each other: marked in a
+/// [`DenseBox`] when the blocks are compact (its cells come out sorted), else sorted here.
 fn keys(grid: &SparseGrid) -> Vec<IVec3> {
-    let sources = grid
+    let sources: Vec<IVec3> = grid
         .leaves()
         .iter()
         .map(|l| l.origin)
-        .chain(grid.tiles(TileLevel::Block).map(|(o, _)| o));
-    let mut keys: Vec<IVec3> = sources
-        .flat_map(|o| {
-            let key = o >> LEAF_LOG2 as i32;
-            (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1))
-        })
+        .chain(grid.tiles(TileLevel::Block).map(|(o, _)| o))
+        .map(|o| o >> LEAF_LOG2 as i32)
         .collect();
+    let neighbours =
+        |key: IVec3| (0..27).map(move |n| key + IVec3::new(n / 9 - 1, (n / 3) % 3 - 1, n % 3 - 1));
+    let (lo, hi) = sources
+        .iter()
+        .fold((IVec3::MAX, IVec3::MIN), |(a, b), k| (a.min(*k), b.max(*k)));
+    let touches = 27 * sources.len() as u64;
+    if let Some(mut dense) = DenseBox::new(lo - 1, hi + 1, false, touches) {
+        for &key in &sources {
+            neighbours(key).for_each(|k| *dense.cell(k) = true);
+        }
+        return dense.into_cells().filter(|c| c.1).map(|c| c.0).collect();
+    }
+    let mut keys: Vec<IVec3> = sources.into_iter().flat_map(neighbours).collect();
     keys.par_sort_unstable_by_key(|k| (k.x, k.y, k.z));
     keys.dedup();
     keys

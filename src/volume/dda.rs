@@ -31,6 +31,7 @@ use rayon::prelude::*;
 
 use crate::math::floor::floor;
 use crate::math::ray::{max, min, Ray};
+use crate::volume::dense_box::DenseBox;
 use crate::volume::grid::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
@@ -162,47 +163,9 @@ impl BlockMarks for HashMap<IVec3, BlockCell> {
     }
 }
 
-/// Marks over a dense box of blocks, x-major: neighbouring leaves mark neighbouring cells, where
-/// a hash map scatters the 27 marks of every leaf over a table of several megabytes (a cache miss
-/// each: 0.9 s of serial marking for the 98 647 leaves of the half-size bench cloud).
-struct DenseMarks {
-    lo: IVec3,
-    dim: IVec3,
-    cells: Vec<BlockCell>,
-}
-
-impl DenseMarks {
-    /// Unmarked cells for the blocks `lo..=hi`.
-    fn new(lo: IVec3, hi: IVec3) -> DenseMarks {
-        let dim = hi - lo + 1;
-        let n = dim.as_i64vec3().element_product() as usize;
-        DenseMarks {
-            lo,
-            dim,
-            cells: vec![BlockCell::UNMARKED; n],
-        }
-    }
-
-    /// The marked cells into `blocks`.
-    fn into_map(self, blocks: &mut HashMap<IVec3, BlockCell>) {
-        let (lo, dim) = (self.lo, self.dim);
-        let key = |i: usize| {
-            let i = i as i32;
-            lo + IVec3::new(i / (dim.y * dim.z), i / dim.z % dim.y, i % dim.z)
-        };
-        blocks.reserve(self.cells.iter().filter(|c| c.is_marked()).count());
-        for (i, c) in self.cells.into_iter().enumerate() {
-            if c.is_marked() {
-                merge(blocks.cell(key(i)), c);
-            }
-        }
-    }
-}
-
-impl BlockMarks for DenseMarks {
+impl BlockMarks for DenseBox<BlockCell> {
     fn cell(&mut self, key: IVec3) -> &mut BlockCell {
-        let l = key - self.lo;
-        &mut self.cells[((l.x * self.dim.y + l.y) * self.dim.z + l.z) as usize]
+        DenseBox::cell(self, key)
     }
 }
 
@@ -250,13 +213,8 @@ fn mark_box(marks: &mut impl BlockMarks, lo: IVec3, hi: IVec3, value: f32) {
     }
 }
 
-/// How many more cells than marks a dense box of blocks may have and still be used: past it the
-/// box is mostly empty space (a thin helix across a large volume, tiles far apart) and marks go
-/// to the map instead.
-const DENSE_MARKS_SPREAD: u64 = 4;
-
 /// Marks the dilated index boxes `boxes` (inclusive voxels, with their maximum) into `blocks`,
-/// through a dense box of blocks when it is compact enough ([`DENSE_MARKS_SPREAD`]).
+/// through a [`DenseBox`] of blocks when they are compact enough.
 fn mark_boxes(blocks: &mut HashMap<IVec3, BlockCell>, boxes: &[(IVec3, IVec3, f32)]) {
     let d = IVec3::splat(DILATION);
     let dilated = || {
@@ -271,14 +229,17 @@ fn mark_boxes(blocks: &mut HashMap<IVec3, BlockCell>, boxes: &[(IVec3, IVec3, f3
         khi = khi.max(b);
         marks += (b - a + 1).as_i64vec3().element_product() as u64;
     }
-    let cells = (khi - klo + 1).as_i64vec3().element_product();
-    if boxes.is_empty() || cells as u64 > DENSE_MARKS_SPREAD * marks {
+    let Some(mut dense) = DenseBox::new(klo, khi, BlockCell::UNMARKED, marks) else {
         dilated().for_each(|(lo, hi, max)| mark_box(blocks, lo, hi, max));
         return;
-    }
-    let mut dense = DenseMarks::new(klo, khi);
+    };
     dilated().for_each(|(lo, hi, max)| mark_box(&mut dense, lo, hi, max));
-    dense.into_map(blocks);
+    let marked: Vec<(IVec3, BlockCell)> =
+        dense.into_cells().filter(|(_, c)| c.is_marked()).collect();
+    blocks.reserve(marked.len());
+    for (key, cell) in marked {
+        merge(blocks.cell(key), cell);
+    }
 }
 
 /// The voxels of `leaf` above 0, as an inclusive index box; `None` when there are none.

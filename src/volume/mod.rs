@@ -3,6 +3,7 @@
 
 pub(crate) mod bricks;
 pub(crate) mod dda;
+mod dense_box;
 mod field;
 pub mod grid;
 pub(crate) mod mip;
