@@ -1,17 +1,18 @@
 //! The transfer's coefficients as held in memory: f32 as a bake makes them, or in the reduced
-//! precision a cache stores them ([`Precision`]), decoded a voxel at a time where they are used.
+//! precision a cache stores them ([`super::packing::Precision`]), decoded a voxel at a time where
+//! they are used.
 //!
-//! A render from a cache needs the coefficients only to relight, and a relight reads each voxel's
-//! once; holding an f16 or q8 cache's coefficients as f32 doubled or tripled the largest thing a
-//! render of a big cloud holds, for values that are the cache's own either way. So a reduced cache
-//! is held as it is stored and every value decodes to exactly the f32 it always read back as.
+//! A render from a cache needs the coefficients only to relight, which reads each voxel's once.
+//! Held as f32, an f16 or q8 cache's coefficients would take two or three times the memory — on a
+//! big cloud the largest thing a render holds — for values that are the cache's own either way.
+//! So a reduced cache is held as stored, and every value decodes to exactly the f32 its precision
+//! gives.
 
 use std::borrow::Cow;
 
 use half::f16;
 use half::slice::HalfFloatSliceExt;
 
-use super::packing::Precision;
 use crate::light::sh::MAX_BANDS;
 
 /// The largest magnitude of a q8 coefficient: 8-bit signed, symmetric.
@@ -48,35 +49,12 @@ impl Coefficients {
         self.len() == 0
     }
 
-    /// How the values are held.
-    pub fn precision(&self) -> Precision {
-        match self {
-            Coefficients::F32(_) => Precision::F32,
-            Coefficients::F16(_) => Precision::F16,
-            Coefficients::Q8 { .. } => Precision::Q8,
-        }
-    }
-
     /// Bytes held.
     pub fn memory_bytes(&self) -> usize {
         match self {
             Coefficients::F32(v) => v.len() * 4,
             Coefficients::F16(v) => v.len() * 2,
             Coefficients::Q8 { dc, scales, bytes } => (dc.len() + scales.len()) * 2 + bytes.len(),
-        }
-    }
-
-    /// Bytes `values` values with `coeffs` per voxel take held at `precision`: what
-    /// [`Coefficients::memory_bytes`] will be, before they are read.
-    pub fn bytes_at(precision: Precision, values: usize, coeffs: usize) -> usize {
-        match precision {
-            Precision::F32 => values * 4,
-            Precision::F16 => values * 2,
-            Precision::Q8 => {
-                let voxels = values / coeffs.max(1);
-                let bands = bands_of(coeffs);
-                voxels * 2 * bands + voxels * (coeffs - 1)
-            }
         }
     }
 
@@ -142,14 +120,10 @@ mod tests {
         ];
         for c in &held {
             assert_eq!(c.len(), 8);
-            assert_eq!(c.to_f32(4).as_ref(), &f32s[..], "{:?}", c.precision());
+            assert_eq!(c.to_f32(4).as_ref(), &f32s[..], "{c:?}");
             let mut one = [0.0; 4];
             c.voxel(1, &mut one);
             assert_eq!(one, [3.0, 0.0, 0.0, -1.0]);
-            assert_eq!(
-                c.memory_bytes(),
-                Coefficients::bytes_at(c.precision(), 8, 4)
-            );
         }
         assert_eq!(held.map(|c| c.memory_bytes()), [32, 16, 14]);
     }

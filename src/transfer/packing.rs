@@ -266,7 +266,13 @@ mod tests {
         let mut r = SectionReader::new(&frame[..]).unwrap();
         let out = get_coefficients(&mut r, values.len() / coeffs, coeffs, precision).unwrap();
         r.finish().unwrap();
-        assert_eq!(out.precision(), precision);
+        // Held as stored: bytes per voxel at the precision (q8: f16 DC and scales, a byte each).
+        let per_voxel = match precision {
+            Precision::F32 => 4 * coeffs,
+            Precision::F16 => 2 * coeffs,
+            Precision::Q8 => 2 * bands_of(coeffs) + coeffs - 1,
+        };
+        assert_eq!(out.memory_bytes(), values.len() / coeffs * per_voxel);
         out.to_f32(coeffs).into_owned()
     }
 
