@@ -157,7 +157,9 @@ impl<'a> SectionReader<'a> {
             if out.capacity() - out.len() < m {
                 out.reserve_exact((n - out.len()).min(out.len().max(m)));
             }
-            out.extend((0..m).map(|i| decode(std::array::from_fn(|b| planes[b * m + i]))));
+            // One slice per byte plane, each m long, so the gather below needs no bounds checks.
+            let planes: [&[u8]; W] = std::array::from_fn(|b| &planes[b * m..(b + 1) * m]);
+            out.extend((0..m).map(|i| decode(std::array::from_fn(|b| planes[b][i]))));
         }
         Ok(out)
     }
