@@ -20,33 +20,35 @@ impl<T: Clone> DenseBox<T> {
     /// Cells of `fill` for the keys `lo..=hi`, or `None` when the box is empty or holds more than
     /// [`MAX_SPREAD`] cells per one of the `touches` the caller will make.
     pub fn new(lo: IVec3, hi: IVec3, fill: T, touches: u64) -> Option<DenseBox<T>> {
-        let dim = hi - lo + 1;
-        let n = dim.as_i64vec3().element_product();
-        if dim.cmple(IVec3::ZERO).any() || n as u64 > MAX_SPREAD * touches {
+        if hi.cmplt(lo).any() {
+            return None;
+        }
+        // In i64 and u128: keys far apart (a damaged file's leaf origins) must not wrap around.
+        let dim = (hi.as_i64vec3() - lo.as_i64vec3() + 1).as_u64vec3();
+        let n = dim.x as u128 * dim.y as u128 * dim.z as u128;
+        if n > MAX_SPREAD as u128 * touches as u128 {
             return None;
         }
         Some(DenseBox {
             lo,
-            dim,
+            dim: dim.as_ivec3(),
             cells: vec![fill; n as usize],
         })
     }
 
     /// The cell of `key`, which lies in the box.
     pub fn cell(&mut self, key: IVec3) -> &mut T {
-        let l = key - self.lo;
-        &mut self.cells[((l.x * self.dim.y + l.y) * self.dim.z + l.z) as usize]
+        let (l, d) = ((key - self.lo).as_uvec3(), self.dim.as_uvec3());
+        &mut self.cells[(l.x as usize * d.y as usize + l.y as usize) * d.z as usize + l.z as usize]
     }
 
     /// Every cell with its key, in ascending (x, y, z).
     pub fn into_cells(self) -> impl Iterator<Item = (IVec3, T)> {
         let (lo, dim) = (self.lo, self.dim);
+        let (dy, dz) = (dim.y as usize, dim.z as usize);
         self.cells.into_iter().enumerate().map(move |(i, c)| {
-            let i = i as i32;
-            (
-                lo + IVec3::new(i / (dim.y * dim.z), i / dim.z % dim.y, i % dim.z),
-                c,
-            )
+            let l = [i / (dy * dz), i / dz % dy, i % dz].map(|v| v as i32);
+            (lo + IVec3::from_array(l), c)
         })
     }
 }
@@ -68,8 +70,10 @@ mod tests {
         assert_eq!(cells.len(), 8);
         assert!(cells.contains(&(IVec3::new(0, 0, 3), 5)));
         assert!(cells.contains(&(IVec3::new(-1, 1, 2), 7)));
-        // Eight cells for one touch is past the spread; an inverted box is empty.
+        // Eight cells for one touch is past the spread; an inverted box is empty; keys at the ends
+        // of i32 do not wrap into a small box.
         assert!(DenseBox::new(IVec3::ZERO, IVec3::ONE, 0, 1).is_none());
         assert!(DenseBox::new(IVec3::ONE, IVec3::ZERO, 0, 100).is_none());
+        assert!(DenseBox::new(IVec3::MIN, IVec3::MAX, 0, u64::MAX).is_none());
     }
 }
