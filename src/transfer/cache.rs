@@ -476,19 +476,24 @@ pub fn read_header(path: &Path) -> Result<Option<Header>> {
 
 /// Reads and verifies a whole cache.
 pub fn read(path: &Path) -> Result<Cache> {
-    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
-    read_from(std::io::BufReader::new(file), len).map_err(|m| damaged(path, m))
+    let (file, len) = open(path)?;
+    read_from(file, len).map_err(|m| damaged(path, m))
 }
 
 /// Reads a cache's header and verifies the checksum over the whole file, without decoding the
 /// data (for `info`: a damaged cache is reported as damaged, not described).
 pub fn verify(path: &Path) -> Result<Header> {
-    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
-    verified_header(&mut std::io::BufReader::new(file), len)
+    let (mut file, len) = open(path)?;
+    verified_header(&mut file, len)
         .map(|(header, _)| header)
         .map_err(|m| damaged(path, m))
+}
+
+/// The cache at `path`, buffered, and its length.
+fn open(path: &Path) -> Result<(std::io::BufReader<std::fs::File>, u64)> {
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+    Ok((std::io::BufReader::new(file), len))
 }
 
 /// Bytes hashed per read while the checksum is verified.

@@ -188,10 +188,7 @@ impl TransferLayout {
             }
         } else {
             for (n, s) in slots.iter_mut().enumerate() {
-                let c = b + corner(n);
-                if let Some(tile) = self.tiles.get(&(c >> TILE_LOG2)) {
-                    *s = tile[tile_local(c)];
-                }
+                *s = self.slot(b + corner(n)).map_or(EMPTY, |slot| slot as u32);
             }
         }
         slots

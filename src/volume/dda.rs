@@ -213,9 +213,9 @@ fn mark_box(marks: &mut impl BlockMarks, lo: IVec3, hi: IVec3, value: f32) {
     }
 }
 
-/// Marks the dilated index boxes `boxes` (inclusive voxels, with their maximum) into `blocks`,
+/// The blocks the dilated index boxes `boxes` (inclusive voxels, with their maximum) mark,
 /// through a [`DenseBox`] of blocks when they are compact enough.
-fn mark_boxes(blocks: &mut HashMap<IVec3, BlockCell>, boxes: &[(IVec3, IVec3, f32)]) {
+fn mark_boxes(boxes: &[(IVec3, IVec3, f32)]) -> HashMap<IVec3, BlockCell> {
     let d = IVec3::splat(DILATION);
     let dilated = || {
         boxes
@@ -230,16 +230,12 @@ fn mark_boxes(blocks: &mut HashMap<IVec3, BlockCell>, boxes: &[(IVec3, IVec3, f3
         marks += (b - a + 1).as_i64vec3().element_product() as u64;
     }
     let Some(mut dense) = DenseBox::new(klo, khi, BlockCell::UNMARKED, marks) else {
-        dilated().for_each(|(lo, hi, max)| mark_box(blocks, lo, hi, max));
-        return;
+        let mut blocks = HashMap::new();
+        dilated().for_each(|(lo, hi, max)| mark_box(&mut blocks, lo, hi, max));
+        return blocks;
     };
     dilated().for_each(|(lo, hi, max)| mark_box(&mut dense, lo, hi, max));
-    let marked: Vec<(IVec3, BlockCell)> =
-        dense.into_cells().filter(|(_, c)| c.is_marked()).collect();
-    blocks.reserve(marked.len());
-    for (key, cell) in marked {
-        merge(blocks.cell(key), cell);
-    }
+    dense.into_cells().filter(|(_, c)| c.is_marked()).collect()
 }
 
 /// The voxels of `leaf` above 0, as an inclusive index box; `None` when there are none.
@@ -397,7 +393,6 @@ fn mark_occupied(
     HashMap<IVec3, f32>,
     HashMap<IVec3, f32>,
 ) {
-    let mut blocks = HashMap::new();
     // Positive voxels as inclusive boxes, with their maximum.
     let mut boxes: Vec<(IVec3, IVec3, f32)> = grid
         .leaves()
@@ -410,7 +405,7 @@ fn mark_occupied(
             .filter(|&(_, v)| v > 0.0)
             .map(|(o, v)| (o, o + IVec3::splat(LEAF_DIM - 1), v)),
     );
-    mark_boxes(&mut blocks, &boxes);
+    let mut blocks = mark_boxes(&boxes);
     let mut dense: HashMap<IVec3, f32> = HashMap::new();
     let node_tiles = || {
         grid.tiles(TileLevel::Node)
