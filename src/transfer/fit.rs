@@ -243,63 +243,65 @@ pub fn least_squares(
         }
     };
     let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
-    let solved: Vec<Vec<f64>> = (0..coeffs)
-        .into_par_iter()
-        .map(|c| {
-            let mean: Vec<f64> = (0..n).map(|s| means[s * coeffs + c] as f64).collect();
-            // Fixed nodes enter the free rows' equations as known values.
-            let fixed: Vec<f64> = (0..n)
-                .map(|s| if free[s] { 0.0 } else { mean[s] })
-                .collect();
-            let mut known = vec![0.0; n];
-            apply(&fixed, &mut known);
-            let b: Vec<f64> = (0..n)
-                .map(|s| match free[s] {
-                    true => rows[s].mass * mean[s] - known[s],
-                    false => 0.0,
-                })
-                .collect();
-            // Start from the means: already close, as the mass matrix is diagonally dominant.
-            let mut x: Vec<f64> = (0..n).map(|s| mean[s] - fixed[s]).collect();
-            let mut residual = vec![0.0; n];
-            apply(&x, &mut residual);
-            residual.iter_mut().zip(&b).for_each(|(r, b)| *r = b - *r);
-            let precondition = |r: &[f64]| -> Vec<f64> {
-                (0..n)
-                    .map(|s| if free[s] { r[s] / diagonal[s] } else { 0.0 })
-                    .collect()
-            };
-            let mut z = precondition(&residual);
-            let mut p = z.clone();
-            let mut rz = dot(&residual, &z);
-            let mut ap = vec![0.0; n];
-            for _ in 0..CG_ITERATIONS {
-                apply(&p, &mut ap);
-                let pap = dot(&p, &ap);
-                if pap <= 0.0 || rz <= 0.0 {
-                    break;
-                }
-                let alpha = rz / pap;
-                for s in 0..n {
-                    x[s] += alpha * p[s];
-                    residual[s] -= alpha * ap[s];
-                }
-                z = precondition(&residual);
-                let rz_next = dot(&residual, &z);
-                let beta = rz_next / rz;
-                rz = rz_next;
-                for s in 0..n {
-                    p[s] = z[s] + beta * p[s];
-                }
+    // Each column is read from `means` when its solve starts and written back when it ends
+    // (under a lock, one column's copy), so the fit holds the columns in flight, not a second copy
+    // of every coefficient in f64.
+    let means = std::sync::Mutex::new(means);
+    (0..coeffs).into_par_iter().for_each(|c| {
+        let mean: Vec<f64> = {
+            let means = means.lock().unwrap_or_else(|e| e.into_inner());
+            (0..n).map(|s| means[s * coeffs + c] as f64).collect()
+        };
+        // Fixed nodes enter the free rows' equations as known values.
+        let fixed: Vec<f64> = (0..n)
+            .map(|s| if free[s] { 0.0 } else { mean[s] })
+            .collect();
+        let mut known = vec![0.0; n];
+        apply(&fixed, &mut known);
+        let b: Vec<f64> = (0..n)
+            .map(|s| match free[s] {
+                true => rows[s].mass * mean[s] - known[s],
+                false => 0.0,
+            })
+            .collect();
+        // Start from the means: already close, as the mass matrix is diagonally dominant.
+        let mut x: Vec<f64> = (0..n).map(|s| mean[s] - fixed[s]).collect();
+        let mut residual = vec![0.0; n];
+        apply(&x, &mut residual);
+        residual.iter_mut().zip(&b).for_each(|(r, b)| *r = b - *r);
+        let precondition = |r: &[f64]| -> Vec<f64> {
+            (0..n)
+                .map(|s| if free[s] { r[s] / diagonal[s] } else { 0.0 })
+                .collect()
+        };
+        let mut z = precondition(&residual);
+        let mut p = z.clone();
+        let mut rz = dot(&residual, &z);
+        let mut ap = vec![0.0; n];
+        for _ in 0..CG_ITERATIONS {
+            apply(&p, &mut ap);
+            let pap = dot(&p, &ap);
+            if pap <= 0.0 || rz <= 0.0 {
+                break;
             }
-            (0..n).map(|s| x[s] + fixed[s]).collect()
-        })
-        .collect();
-    for (c, column) in solved.iter().enumerate() {
-        for (s, value) in column.iter().enumerate() {
-            means[s * coeffs + c] = *value as f32;
+            let alpha = rz / pap;
+            for s in 0..n {
+                x[s] += alpha * p[s];
+                residual[s] -= alpha * ap[s];
+            }
+            z = precondition(&residual);
+            let rz_next = dot(&residual, &z);
+            let beta = rz_next / rz;
+            rz = rz_next;
+            for s in 0..n {
+                p[s] = z[s] + beta * p[s];
+            }
         }
-    }
+        let mut means = means.lock().unwrap_or_else(|e| e.into_inner());
+        for s in 0..n {
+            means[s * coeffs + c] = (x[s] + fixed[s]) as f32;
+        }
+    });
 }
 
 #[cfg(test)]

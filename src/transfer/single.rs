@@ -177,72 +177,71 @@ pub fn bake_single(
         .flat_map(|(s, slots)| slots.chunks(PROJECTION_BATCH).map(move |c| (s, c)))
         .collect();
     let n = settings.samples;
-    let results: Vec<Vec<f32>> = batches
-        .par_iter()
-        .map(|&(s, slots)| {
-            let set = &sets[s];
-            let mut tr = vec![0f32; slots.len() * n];
-            for (row, &slot) in tr.chunks_exact_mut(n).zip(slots) {
-                let v = layout.voxels()[slot as usize];
-                let x = layout.position(v);
-                let starts = match settings.origins {
-                    Origins::Node => None,
-                    Origins::Footprint => {
-                        super::fit::spread_starts(density, layout.k, v, &set.dirs, settings.seed)
+    // Each batch's result goes into T_ri as soon as it is projected (under a lock, a copy of a
+    // few kilobytes), so the phase never holds a second copy of T_ri in batch results.
+    let t_ri = std::sync::Mutex::new(vec![0f32; layout.len() * coeffs]);
+    batches.par_iter().for_each(|&(s, slots)| {
+        let set = &sets[s];
+        let mut tr = vec![0f32; slots.len() * n];
+        for (row, &slot) in tr.chunks_exact_mut(n).zip(slots) {
+            let v = layout.voxels()[slot as usize];
+            let x = layout.position(v);
+            let starts = match settings.origins {
+                Origins::Node => None,
+                Origins::Footprint => {
+                    super::fit::spread_starts(density, layout.k, v, &set.dirs, settings.seed)
+                }
+            };
+            match starts {
+                None => {
+                    for (t, d) in row.iter_mut().zip(&set.dirs) {
+                        *t = depth.transmittance(x, *d);
                     }
-                };
-                match starts {
-                    None => {
-                        for (t, d) in row.iter_mut().zip(&set.dirs) {
-                            *t = depth.transmittance(x, *d);
-                        }
-                    }
-                    Some(starts) => {
-                        let k = layout.k;
-                        let footprint = (x - k as f32, x + k as f32);
-                        for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts) {
-                            *t = depth
-                                .chord_mean(*p, *d, footprint, settings.chord_step, |q| {
-                                    super::fit::tent(q - x, k)
-                                })
-                                .unwrap_or_else(|| depth.transmittance(*p, *d));
-                        }
+                }
+                Some(starts) => {
+                    let k = layout.k;
+                    let footprint = (x - k as f32, x + k as f32);
+                    for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts) {
+                        *t = depth
+                            .chord_mean(*p, *d, footprint, settings.chord_step, |q| {
+                                super::fit::tent(q - x, k)
+                            })
+                            .unwrap_or_else(|| depth.transmittance(*p, *d));
                     }
                 }
             }
-            let mut out = vec![0f32; slots.len() * coeffs];
-            // out (m×C) = tr (m×N) · weights (N×C), all row-major.
-            // SAFETY: the pointers and strides describe the three buffers exactly.
-            unsafe {
-                matrixmultiply::sgemm(
-                    slots.len(),
-                    n,
-                    coeffs,
-                    1.0,
-                    tr.as_ptr(),
-                    n as isize,
-                    1,
-                    set.weights.as_ptr(),
-                    coeffs as isize,
-                    1,
-                    0.0,
-                    out.as_mut_ptr(),
-                    coeffs as isize,
-                    1,
-                );
-            }
-            progress.inc(slots.len() as u64);
-            out
-        })
-        .collect();
-    let mut t_ri = vec![0f32; layout.len() * coeffs];
-    for ((_, slots), t) in batches.iter().zip(results) {
-        for (&slot, tc) in slots.iter().zip(t.chunks_exact(coeffs)) {
-            let at = slot as usize * coeffs;
-            t_ri[at..at + coeffs].copy_from_slice(tc);
         }
-    }
-    t_ri
+        let mut out = vec![0f32; slots.len() * coeffs];
+        // out (m×C) = tr (m×N) · weights (N×C), all row-major.
+        // SAFETY: the pointers and strides describe the three buffers exactly.
+        unsafe {
+            matrixmultiply::sgemm(
+                slots.len(),
+                n,
+                coeffs,
+                1.0,
+                tr.as_ptr(),
+                n as isize,
+                1,
+                set.weights.as_ptr(),
+                coeffs as isize,
+                1,
+                0.0,
+                out.as_mut_ptr(),
+                coeffs as isize,
+                1,
+            );
+        }
+        {
+            let mut t_ri = t_ri.lock().unwrap_or_else(|e| e.into_inner());
+            for (&slot, tc) in slots.iter().zip(out.chunks_exact(coeffs)) {
+                let at = slot as usize * coeffs;
+                t_ri[at..at + coeffs].copy_from_slice(tc);
+            }
+        }
+        progress.inc(slots.len() as u64);
+    });
+    t_ri.into_inner().unwrap_or_else(|e| e.into_inner())
 }
 
 #[cfg(test)]
