@@ -81,8 +81,9 @@
 //!   T_ri's point value and put the surface voxels of the thick furnace up to 11 % off, not
 //!   5–8.5 %.
 //!
-//! A generation is computed by sweeping each direction once over the nodes in the order of
-//! x·d_j, so flux crosses the whole volume in one sweep (Gauss–Seidel in the direction of flight).
+//! A generation is computed by sweeping each direction once over its lines, each line's nodes in
+//! the order of x·d_j, so flux crosses the whole volume in one sweep (Gauss–Seidel in the
+//! direction of flight); lines exchange no light within a sweep, so they go in parallel.
 //! Generations go on until the estimated **remaining** energy — the geometric tail Δₙ·r/(1−r) of
 //! the per-generation increments Δₙ of the DC fluence, r = Δₙ/Δₙ₋₁ — is below
 //! [`CONVERGENCE`] of the total.
@@ -200,15 +201,14 @@ impl Directions {
     }
 }
 
-/// One cell's segment along one direction: where its light goes and how the segment transmits,
-/// emits and accumulates fluence. Per unit of what the cell scatters, the emission terms include
-/// the share e_j and the self-scattering gain 1/(1 − α·s).
-#[derive(Debug, Clone, Copy)]
+/// One cell's segment along one direction: how it transmits, emits and accumulates fluence. Per
+/// unit of what the cell scatters, the emission terms include the share e_j and the
+/// self-scattering gain 1/(1 − α·s). Where its light goes is where it stands in its sweep: the
+/// next link of its line.
+#[derive(Debug, Clone, Copy, Default)]
 struct Link {
-    /// The cell's slot.
+    /// The cell's slot, with [`LINE_START`] set on the first cell of a line.
     node: u32,
-    /// Slot of the next active cell along d_j, or `NO_LINK`.
-    target: u32,
     /// e^(−τ) of the whole segment.
     trans: f32,
     /// Fluence at the node per unit entering flux, ℓ·e^(−τ_½) (world units).
@@ -221,14 +221,32 @@ struct Link {
     reflect: f32,
 }
 
-/// The lattice's links, stored per direction in the order that direction's sweep visits them, so
-/// a sweep streams its links front to back instead of gathering them across memory.
+/// Marks a line's first cell in [`Link::node`]: no active cell lies upstream of it along −d_j,
+/// so the environment enters there. Slots stay below it: a layout holds far fewer than 2³¹ cells.
+const LINE_START: u32 = 1 << 31;
+
+/// Links per task of a sweep, at least (a task ends where a line does): enough that scheduling
+/// costs nothing next to the links, few enough that two threads share a small lattice.
+const TASK_LINKS: usize = 4096;
+
+/// Cells whose links are computed together before they are written to their sweeps: the block's
+/// links (26 × 24 bytes a cell) are all the building holds beyond the sweeps themselves.
+const LINK_BLOCK: usize = 1 << 15;
+
+/// One direction's links. A *line* is the active cells on one lattice line along d_j in
+/// ascending x·d_j: light leaving a cell enters the next one of its line (across empty space,
+/// unchanged), and lines never exchange light within a sweep. So the lines are stored one after
+/// another, a sweep carries the flux from link to link in a register, and its tasks — runs of
+/// whole lines — go in parallel.
+struct Sweep {
+    links: Vec<Link>,
+    /// Where each task starts (at a line start), then `links.len()`.
+    tasks: Vec<usize>,
+}
+
+/// The lattice's links, a [`Sweep`] per direction.
 struct Links {
-    /// Per direction, every cell's link in ascending x·d_j.
-    sweeps: Vec<Vec<Link>>,
-    /// Per direction, the cells with no active cell upstream along −d_j: where the environment
-    /// enters the line.
-    entries: Vec<Vec<u32>>,
+    sweeps: Vec<Sweep>,
     /// Flux entering each line from the environment, `D × coeffs`: P_ij = 4π·w_j·ȳ_ij/ℓ_j.
     inflow: Vec<f32>,
     /// Index of −d_j per direction.
@@ -261,125 +279,49 @@ fn build_links(
     let d = dirs.len();
     let k = layout.k;
     let scale = field.grid.transform.scale.as_vec3();
-    let (lo, hi) = layout
-        .voxels()
-        .iter()
-        .fold((IVec3::MAX, IVec3::MIN), |(a, b), v| (a.min(*v), b.max(*v)));
     let lengths: Vec<f32> = dirs
         .offsets
         .iter()
         .map(|off| (off.as_vec3() * k as f32 * scale).length())
         .collect();
-    // Per cell (index x·D + j), as the cells are marched; rearranged per sweep below.
-    let mut target = vec![NO_LINK; n * d];
-    let mut trans = vec![0f32; n * d];
-    let mut read_in = vec![0f32; n * d];
-    let mut emit_out = vec![0f32; n * d];
-    let mut read_emit = vec![0f32; n * d];
-    let mut reflect = vec![0f32; n * d];
-    target
-        .par_chunks_mut(d)
-        .zip(trans.par_chunks_mut(d))
-        .zip(read_in.par_chunks_mut(d))
-        .zip(emit_out.par_chunks_mut(d))
-        .zip(read_emit.par_chunks_mut(d))
-        .zip(reflect.par_chunks_mut(d))
-        .zip(layout.voxels().par_iter())
-        .for_each(
-            |((((((target, trans), read_in), emit_out), read_emit), reflect), &v)| {
-                let mut acc = field.sampler();
-                let x = layout.position(v);
-                let mut segments = Vec::with_capacity(d);
-                for (j, off) in dirs.offsets.iter().enumerate() {
-                    let mut step = v + *off;
-                    while step.cmpge(lo).all() && step.cmple(hi).all() {
-                        if let Some(s) = layout.slot(step) {
-                            target[j] = s as u32;
-                            break;
-                        }
-                        step += *off;
-                    }
-                    let half = off.as_vec3() * (k as f32 / 2.0);
-                    segments.push(segment(
-                        &mut acc,
-                        x - half,
-                        x + half,
-                        lengths[j],
-                        medium.sigma_t,
-                    ));
-                }
-                let lambda: Vec<f64> = segments
-                    .iter()
-                    .zip(&dirs.offsets)
-                    .map(|(seg, off)| reflection(seg.tau as f64 / off.as_vec3().length() as f64))
-                    .collect();
-                // Emission shares e_j ∝ (1 − λ_j)·w_j·σ̄_j: what enters line j and collides
-                // there; an empty cell scatters nothing, any shares will do.
-                let absorbing: Vec<f64> = segments
-                    .iter()
-                    .zip(&dirs.weights)
-                    .zip(&lengths)
-                    .zip(&lambda)
-                    .map(|(((seg, w), l), lam)| {
-                        (1.0 - lam) * *w as f64 * seg.tau as f64 / *l as f64
-                    })
-                    .collect();
-                let total: f64 = absorbing.iter().sum();
-                let share = |j: usize| match total > 0.0 {
-                    true => absorbing[j] / total,
-                    false => dirs.weights[j] as f64,
-                };
-                let self_share: f64 = (0..d)
-                    .map(|j| share(j) * (1.0 - segments[j].escape as f64))
-                    .sum();
-                let gain = 1.0 / (1.0 - (medium.albedo as f64 * self_share).min(MAX_SELF_GAIN));
-                for (j, seg) in segments.iter().enumerate() {
-                    trans[j] = seg.trans;
-                    read_in[j] = seg.read_in;
-                    emit_out[j] = (share(j) * gain * seg.escape as f64) as f32;
-                    // The node reads the light that entered line j, not what it reflected at
-                    // the face: 1/(1 − λ_j) keeps a uniform field's readout exact.
-                    read_emit[j] =
-                        (share(j) * gain * seg.read_emit as f64 / (1.0 - lambda[j])) as f32;
-                    reflect[j] = lambda[j] as f32;
-                }
-            },
-        );
-    let (sweeps, entries): (Vec<Vec<Link>>, Vec<Vec<u32>>) = dirs
+    // The lines of every direction first, and where each cell's link goes in them.
+    let (mut sweeps, places): (Vec<Sweep>, Vec<Vec<u32>>) = dirs
         .offsets
         .par_iter()
-        .enumerate()
-        .map(|(j, off)| {
-            let mut order: Vec<u32> = (0..n as u32).collect();
-            // Links always increase x·d_j, so ascending order sees every arrival before it leaves.
-            order.sort_by_key(|&s| (layout.voxels()[s as usize].dot(*off), s));
-            let sweep = order
-                .iter()
-                .map(|&x| {
-                    let i = x as usize * d + j;
-                    Link {
-                        node: x,
-                        target: target[i],
-                        trans: trans[i],
-                        read_in: read_in[i],
-                        emit_out: emit_out[i],
-                        read_emit: read_emit[i],
-                        reflect: reflect[i],
-                    }
-                })
-                .collect();
-            let upstream = dirs.opposite[j];
-            let entry = order
-                .into_iter()
-                .filter(|&x| target[x as usize * d + upstream] == NO_LINK)
-                .collect();
-            (sweep, entry)
-        })
+        .map(|off| lines(layout, *off))
         .unzip();
+    // Then each cell's links, a block of cells at a time, written straight to their places.
+    let mut reflects = vec![false; n];
+    for start in (0..n).step_by(LINK_BLOCK) {
+        let end = (start + LINK_BLOCK).min(n);
+        let block: Vec<[Link; MAX_DIRECTIONS]> = layout.voxels()[start..end]
+            .par_iter()
+            .map(|&v| {
+                let mut acc = field.sampler();
+                cell_links(&mut acc, layout.position(v), k, &dirs, &lengths, medium)
+            })
+            .collect();
+        sweeps
+            .par_iter_mut()
+            .zip(&places)
+            .enumerate()
+            .for_each(|(j, (sweep, place))| {
+                for (cell, &at) in block.iter().zip(&place[start..end]) {
+                    let link = &mut sweep.links[at as usize];
+                    *link = Link {
+                        node: link.node,
+                        ..cell[j]
+                    };
+                }
+            });
+        for (r, cell) in reflects[start..end].iter_mut().zip(&block) {
+            *r = cell[..d].iter().any(|l| l.reflect > 0.0);
+        }
+    }
     let mut reflecting_cells = 0;
-    let reflecting = reflect
-        .chunks_exact(d)
-        .map(|cell| match cell.iter().any(|&l| l > 0.0) {
+    let reflecting = reflects
+        .iter()
+        .map(|&r| match r {
             true => {
                 reflecting_cells += 1;
                 reflecting_cells as u32 - 1
@@ -393,8 +335,108 @@ fn build_links(
         reflecting,
         reflecting_cells,
         sweeps,
-        entries,
     }
+}
+
+/// The most lattice directions there are (26).
+const MAX_DIRECTIONS: usize = 26;
+
+/// The lines of the layout along `off` ([`Sweep`]), their links holding only the cells' slots,
+/// and each cell's place among them.
+fn lines(layout: &TransferLayout, off: IVec3) -> (Sweep, Vec<u32>) {
+    let voxels = layout.voxels();
+    let n = voxels.len();
+    // A cell's line is named by the point where it crosses the plane through the origin normal to
+    // an axis the direction moves along, and the cell's place on it by the steps t from there.
+    let axis = (0..3).find(|&a| off[a] != 0).unwrap_or(0);
+    let line = |v: IVec3| {
+        let t = v[axis] * off[axis];
+        (v - off * t, t)
+    };
+    let mut order: Vec<u32> = (0..n as u32).collect();
+    order.sort_unstable_by_key(|&s| {
+        let (key, t) = line(voxels[s as usize]);
+        (key.x, key.y, key.z, t)
+    });
+    let mut place = vec![0u32; n];
+    let mut links = Vec::with_capacity(n);
+    let mut tasks = vec![0];
+    let mut previous = None;
+    for (i, &s) in order.iter().enumerate() {
+        place[s as usize] = i as u32;
+        let key = line(voxels[s as usize]).0;
+        let start = previous != Some(key);
+        previous = Some(key);
+        if start && i - tasks[tasks.len() - 1] >= TASK_LINKS {
+            tasks.push(i);
+        }
+        links.push(Link {
+            node: s | if start { LINE_START } else { 0 },
+            ..Link::default()
+        });
+    }
+    tasks.push(n);
+    (Sweep { links, tasks }, place)
+}
+
+/// One cell's links along every direction (the first `dirs.len()` entries), its node at
+/// `x`: each segment marched, then the emission shares, reflections and the self-scattering gain
+/// that couple them (module doc). The links' `node` is left for the sweep to set.
+fn cell_links(
+    acc: &mut BrickSampler,
+    x: Vec3,
+    k: i32,
+    dirs: &Directions,
+    lengths: &[f32],
+    medium: Medium,
+) -> [Link; MAX_DIRECTIONS] {
+    let d = dirs.len();
+    let segments: Vec<Segment> = dirs
+        .offsets
+        .iter()
+        .zip(lengths)
+        .map(|(off, &length)| {
+            let half = off.as_vec3() * (k as f32 / 2.0);
+            segment(acc, x - half, x + half, length, medium.sigma_t)
+        })
+        .collect();
+    let lambda: Vec<f64> = segments
+        .iter()
+        .zip(&dirs.offsets)
+        .map(|(seg, off)| reflection(seg.tau as f64 / off.as_vec3().length() as f64))
+        .collect();
+    // Emission shares e_j ∝ (1 − λ_j)·w_j·σ̄_j: what enters line j and collides there; an empty
+    // cell scatters nothing, any shares will do.
+    let absorbing: Vec<f64> = segments
+        .iter()
+        .zip(&dirs.weights)
+        .zip(lengths)
+        .zip(&lambda)
+        .map(|(((seg, w), l), lam)| (1.0 - lam) * *w as f64 * seg.tau as f64 / *l as f64)
+        .collect();
+    let total: f64 = absorbing.iter().sum();
+    let share = |j: usize| match total > 0.0 {
+        true => absorbing[j] / total,
+        false => dirs.weights[j] as f64,
+    };
+    let self_share: f64 = (0..d)
+        .map(|j| share(j) * (1.0 - segments[j].escape as f64))
+        .sum();
+    let gain = 1.0 / (1.0 - (medium.albedo as f64 * self_share).min(MAX_SELF_GAIN));
+    let mut links = [Link::default(); MAX_DIRECTIONS];
+    for (j, seg) in segments.iter().enumerate() {
+        links[j] = Link {
+            node: 0,
+            trans: seg.trans,
+            read_in: seg.read_in,
+            emit_out: (share(j) * gain * seg.escape as f64) as f32,
+            // The node reads the light that entered line j, not what it reflected at the face:
+            // 1/(1 − λ_j) keeps a uniform field's readout exact.
+            read_emit: (share(j) * gain * seg.read_emit as f64 / (1.0 - lambda[j])) as f32,
+            reflect: lambda[j] as f32,
+        };
+    }
+    links
 }
 
 /// λ(t) = (√t − 1)/(√t + 1) above [`REFLECT_ABOVE_DEPTH`], else 0: the share of the light
@@ -586,34 +628,167 @@ enum Drive<'a> {
     Emission(&'a [f32]),
 }
 
+/// Rows the tasks of one sweep update in parallel, each row from one task only: a sweep holds
+/// exactly one link per cell ([`lines`] places every cell once), and a cell's link alone touches
+/// the cell's rows — its fluence, its next emission, and its reflected light in the sweep's
+/// direction and the opposite one.
+struct SweepRows<'a> {
+    rows: *mut Row,
+    len: usize,
+    _rows: std::marker::PhantomData<&'a mut [Row]>,
+}
+
+// SAFETY: the rows are only reached through `take` and `add`, whose callers guarantee that no two
+// threads touch one row during a sweep (above).
+unsafe impl Send for SweepRows<'_> {}
+unsafe impl Sync for SweepRows<'_> {}
+
+impl<'a> SweepRows<'a> {
+    fn new(rows: &'a mut [Row]) -> SweepRows<'a> {
+        SweepRows {
+            rows: rows.as_mut_ptr(),
+            len: rows.len(),
+            _rows: std::marker::PhantomData,
+        }
+    }
+
+    /// Row `i`, left zero.
+    ///
+    /// # Safety
+    /// No other task of the sweep reaches row `i`.
+    unsafe fn take(&self, i: usize) -> Row {
+        assert!(i < self.len);
+        // SAFETY: in bounds, and ours alone (the caller's promise).
+        unsafe { std::ptr::replace(self.rows.add(i), ZERO_ROW) }
+    }
+
+    /// Adds `value` to row `i`.
+    ///
+    /// # Safety
+    /// As [`SweepRows::take`].
+    unsafe fn add(&self, i: usize, value: &Row) {
+        assert!(i < self.len);
+        // SAFETY: in bounds, and ours alone (the caller's promise).
+        let row = unsafe { &mut *self.rows.add(i) };
+        for c in 0..CHUNK / 4 {
+            row[c] += value[c];
+        }
+    }
+}
+
+/// The state of one transport: per node the fluence read out so far, the emission of the
+/// generation being swept and the collisions that feed the next; per reflecting cell and
+/// direction, reflected light waiting to leave.
+struct State {
+    fluence: Vec<Row>,
+    emit: Vec<Row>,
+    next: Vec<Row>,
+    reflected: Vec<Row>,
+}
+
+/// Sweeps direction `j` once; returns the DC fluence it read out (when `c0 == 0`), summed task by
+/// task in a fixed order, so the result does not depend on the thread count. `INFLOW`: generation
+/// 0, the environment's light entering each line (`inflow`), unscattered, so not read out.
+fn sweep<const INFLOW: bool>(
+    links: &Links,
+    j: usize,
+    state: &mut State,
+    inflow: Row,
+    albedo: f32,
+    c0: usize,
+) -> f64 {
+    let sweep = &links.sweeps[j];
+    let d = links.sweeps.len();
+    let readout = if INFLOW { 0.0 } else { 1.0 };
+    let emit = &state.emit;
+    let fluence = SweepRows::new(&mut state.fluence);
+    let next = SweepRows::new(&mut state.next);
+    let reflected = SweepRows::new(&mut state.reflected);
+    let added: Vec<f64> = (0..sweep.tasks.len() - 1)
+        .into_par_iter()
+        .map(|task| {
+            let mut added = 0.0f64;
+            let mut p = ZERO_ROW;
+            for link in &sweep.links[sweep.tasks[task]..sweep.tasks[task + 1]] {
+                if link.node & LINE_START != 0 {
+                    p = if INFLOW { inflow } else { ZERO_ROW };
+                }
+                let x = (link.node & !LINE_START) as usize;
+                let e = emit[x];
+                // Reflected light is scattered light: generation 0 keeps it for generation 1.
+                let row = links.reflecting[x] as usize;
+                let reflects = row != NO_LINK as usize;
+                // SAFETY (here and below): the rows of cell x are this link's alone in this sweep
+                // (`SweepRows`).
+                let back = match reflects && !INFLOW {
+                    true => unsafe { reflected.take(row * d + j) },
+                    false => ZERO_ROW,
+                };
+                let (mut read, mut out, mut collided) = (ZERO_ROW, ZERO_ROW, ZERO_ROW);
+                let enter = 1.0 - link.reflect;
+                for c in 0..CHUNK / 4 {
+                    read[c] = readout * (p[c] * link.read_in + e[c] * link.read_emit);
+                    // Only entering flux feeds the next generation: the cell's own emission
+                    // re-collides inside its self-scattering gain already.
+                    collided[c] = albedo * enter * p[c] * (1.0 - link.trans);
+                    out[c] = enter * p[c] * link.trans + e[c] * link.emit_out + back[c];
+                }
+                unsafe {
+                    fluence.add(x, &read);
+                    next.add(x, &collided);
+                }
+                if reflects && link.reflect > 0.0 {
+                    let mut r = ZERO_ROW;
+                    for c in 0..CHUNK / 4 {
+                        r[c] = albedo * link.reflect * p[c];
+                    }
+                    unsafe { reflected.add(row * d + links.opposite[j], &r) };
+                }
+                if c0 == 0 {
+                    added += read[0].x as f64;
+                }
+                // What leaves enters the next cell of the line, as it would a fresh cell's zero.
+                for c in 0..CHUNK / 4 {
+                    p[c] = Vec4::ZERO + out[c];
+                }
+            }
+            added
+        })
+        .collect();
+    added.iter().sum()
+}
+
 /// Transports one drive; stops by the energy criterion when `generations` is `None` (the chunk
-/// holding the DC term, or a sun), else runs exactly that many scattered generations.
+/// holding the DC term, or a sun), else runs exactly that many scattered generations. Returns
+/// the fluence per node (its first `width` lanes).
 fn transport_chunk(
     links: &Links,
     first: &Source,
     drive: Drive,
     generations: Option<usize>,
-) -> (Vec<f32>, LatticeStats) {
+) -> (Vec<Row>, LatticeStats) {
     let (coeffs, albedo) = (first.bands * first.bands, first.medium.albedo);
-    let n = links.sweeps[0].len();
+    let n = links.sweeps[0].links.len();
     // The coefficients transported, what the first generation emits, and where it starts:
     // the environment enters at generation 0 and emits nothing; a known emission is generation 1.
-    let (c0, width, mut emit, start) = match drive {
+    let (c0, width, emit, start) = match drive {
         Drive::Environment { c0, width } => (c0, width, vec![ZERO_ROW; n], 0),
         Drive::Emission(q) => {
             let emit = q.iter().map(|&e| lanes(&[e])).collect();
             (0, 1, emit, 1)
         }
     };
-    let mut fluence = vec![ZERO_ROW; n];
-    let mut next = vec![ZERO_ROW; n];
-    let mut incoming = vec![ZERO_ROW; n];
+    let d = links.sweeps.len();
     // Light a cell reflected, waiting to leave it along each direction: one buffer, read and
     // cleared by the sweep of that direction, added to by the sweep of its opposite.
-    let d = links.sweeps.len();
-    let mut reflected = vec![ZERO_ROW; links.reflecting_cells * d];
+    let mut state = State {
+        fluence: vec![ZERO_ROW; n],
+        emit,
+        next: vec![ZERO_ROW; n],
+        reflected: vec![ZERO_ROW; links.reflecting_cells * d],
+    };
     let mut stats = LatticeStats {
-        energy_single: (0..n).map(|x| first.t_ri[x * coeffs] as f64).sum(),
+        energy_single: first.energy_single,
         ..Default::default()
     };
     let mut previous = 0.0f64;
@@ -622,56 +797,18 @@ fn transport_chunk(
         // Generation 0 is the unscattered light: it enters from the environment, emits nothing
         // (`emit` starts at zero) and is not read out, since T_ri stands for it.
         let inflow = generation == 0;
-        let readout = if inflow { 0.0 } else { 1.0 };
-        next.iter_mut().for_each(|v| *v = ZERO_ROW);
+        state.next.iter_mut().for_each(|v| *v = ZERO_ROW);
         let mut added = 0.0f64;
-        for (j, sweep) in links.sweeps.iter().enumerate() {
-            incoming.iter_mut().for_each(|v| *v = ZERO_ROW);
-            if inflow {
-                // No active cell lies upstream of an entry, so nothing else reaches it on this sweep.
-                let p = lanes(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
-                for &x in &links.entries[j] {
-                    incoming[x as usize] = p;
+        for j in 0..d {
+            added += match inflow {
+                true => {
+                    let p = lanes(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
+                    sweep::<true>(links, j, &mut state, p, albedo, c0)
                 }
-            }
-            for link in sweep {
-                let x = link.node as usize;
-                let (p, e) = (incoming[x], emit[x]);
-                // Reflected light is scattered light: generation 0 keeps it for generation 1.
-                let mut back = ZERO_ROW;
-                let row = links.reflecting[x] as usize;
-                if row != NO_LINK as usize && !inflow {
-                    back = std::mem::replace(&mut reflected[row * d + j], ZERO_ROW);
-                }
-                let (fluence, next) = (&mut fluence[x], &mut next[x]);
-                let (mut read, mut out) = (ZERO_ROW, ZERO_ROW);
-                let enter = 1.0 - link.reflect;
-                for c in 0..CHUNK / 4 {
-                    read[c] = readout * (p[c] * link.read_in + e[c] * link.read_emit);
-                    fluence[c] += read[c];
-                    // Only entering flux feeds the next generation: the cell's own emission
-                    // re-collides inside its self-scattering gain already.
-                    next[c] += albedo * enter * p[c] * (1.0 - link.trans);
-                    out[c] = enter * p[c] * link.trans + e[c] * link.emit_out + back[c];
-                }
-                if row != NO_LINK as usize && link.reflect > 0.0 {
-                    let r = &mut reflected[row * d + links.opposite[j]];
-                    for c in 0..CHUNK / 4 {
-                        r[c] += albedo * link.reflect * p[c];
-                    }
-                }
-                if c0 == 0 {
-                    added += read[0].x as f64;
-                }
-                if link.target != NO_LINK {
-                    let t = &mut incoming[link.target as usize];
-                    for c in 0..CHUNK / 4 {
-                        t[c] += out[c];
-                    }
-                }
-            }
+                false => sweep::<false>(links, j, &mut state, ZERO_ROW, albedo, c0),
+            };
         }
-        std::mem::swap(&mut emit, &mut next);
+        std::mem::swap(&mut state.emit, &mut state.next);
         stats.generations = generation;
         if generations.is_none() && !inflow {
             stats.energy_multiple += added;
@@ -693,11 +830,7 @@ fn transport_chunk(
             }
         }
     }
-    let fluence = fluence
-        .iter()
-        .flat_map(|row| row.iter().flat_map(|v| v.to_array()).take(width))
-        .collect();
-    (fluence, stats)
+    (state.fluence, stats)
 }
 
 /// Up to CHUNK coefficients as one row of lanes, the rest zero.
@@ -709,50 +842,51 @@ fn lanes(values: &[f32]) -> Row {
     row
 }
 
-/// What the lattice works with: the medium, the SH band count, and T_ri (only to weigh the
-/// remaining energy against the total; the lattice's source is the environment, module doc).
-pub struct Source<'a> {
-    pub t_ri: &'a [f32],
+/// What the lattice works with: the medium, the SH band count, and the energy of the unscattered
+/// light (Σ over nodes of T_ri's DC coefficient), against which the remaining energy is weighed;
+/// the lattice's source is the environment (module doc).
+pub struct Source {
+    pub energy_single: f64,
     /// `bands²` coefficients per voxel.
     pub bands: usize,
     pub medium: Medium,
 }
 
-/// F_ms for every transfer voxel: `layout.len() × coeffs`.
+/// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × coeffs`), a chunk of
+/// coefficients at a time, each chunk's sweeps running in parallel.
 pub fn bake_multiple(
     field: &DensityField,
     layout: &TransferLayout,
     kind: LatticeKind,
     first: &Source,
-) -> (Vec<f32>, LatticeStats) {
-    let (medium, coeffs) = (first.medium, first.bands * first.bands);
+    f_ms: &mut [f32],
+) -> LatticeStats {
+    let coeffs = first.bands * first.bands;
     let dirs = Directions::new(kind);
-    let links = build_links(field, layout, medium, dirs, first.bands);
-    let n = layout.len();
-    // The DC term alone first: its run decides the generation count and runs on one thread, so it
-    // carries no more than it must.
-    let chunks: Vec<(usize, usize)> = std::iter::once((0, 1))
-        .chain(
-            (1..coeffs)
-                .step_by(CHUNK)
-                .map(|c0| (c0, CHUNK.min(coeffs - c0))),
-        )
-        .collect();
-    // The chunk holding the DC term decides the generation count by energy; the operator is the
-    // same for every coefficient, so the other chunks run exactly as many generations.
-    let drive = |(c0, width)| Drive::Environment { c0, width };
-    let (head, stats) = transport_chunk(&links, first, drive(chunks[0]), None);
-    let rest: Vec<Vec<f32>> = chunks[1..]
-        .par_iter()
-        .map(|&c| transport_chunk(&links, first, drive(c), Some(stats.generations)).0)
-        .collect();
-    let mut f_ms = vec![0f32; n * coeffs];
-    for (&(c0, w), part) in chunks.iter().zip(std::iter::once(&head).chain(&rest)) {
-        for x in 0..n {
-            f_ms[x * coeffs + c0..x * coeffs + c0 + w].copy_from_slice(&part[x * w..(x + 1) * w]);
+    let links = build_links(field, layout, first.medium, dirs, first.bands);
+    // The DC term alone first: its run decides the generation count, so it carries no more than
+    // it must.
+    let chunks = std::iter::once((0, 1)).chain(
+        (1..coeffs)
+            .step_by(CHUNK)
+            .map(|c0| (c0, CHUNK.min(coeffs - c0))),
+    );
+    let mut stats = None;
+    for (c0, width) in chunks {
+        // The chunk holding the DC term decides the generation count by energy; the operator is
+        // the same for every coefficient, so the other chunks run exactly as many generations.
+        let generations = stats.map(|s: LatticeStats| s.generations);
+        let drive = Drive::Environment { c0, width };
+        let (fluence, chunk_stats) = transport_chunk(&links, first, drive, generations);
+        stats.get_or_insert(chunk_stats);
+        for (f, row) in f_ms.chunks_exact_mut(coeffs).zip(&fluence) {
+            let lanes = row.iter().flat_map(|v| v.to_array());
+            for (out, value) in f[c0..c0 + width].iter_mut().zip(lanes) {
+                *out += value;
+            }
         }
     }
-    (f_ms, stats)
+    stats.unwrap_or_default()
 }
 
 /// The multiply scattered fluence of light whose first scattering is known: `emission[x]` is the
@@ -768,13 +902,14 @@ pub fn solve_emission(
 ) -> Vec<f32> {
     let links = build_links(field, layout, medium, Directions::new(kind), 1);
     // The energy criterion weighs what remains against the total: the first scattering stands
-    // for the "single" part here (only its DC term is read, one per node).
+    // for the "single" part here.
     let first = Source {
-        t_ri: emission,
+        energy_single: emission.iter().map(|&e| e as f64).sum(),
         bands: 1,
         medium,
     };
-    transport_chunk(&links, &first, Drive::Emission(emission), None).0
+    let (fluence, _) = transport_chunk(&links, &first, Drive::Emission(emission), None);
+    fluence.iter().map(|row| row[0].x).collect()
 }
 
 #[cfg(test)]

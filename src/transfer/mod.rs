@@ -135,20 +135,23 @@ pub fn bake(
         true => vec![0.0; t_ri.len()],
         false => {
             progress.phase("lattice", 0);
+            let coeffs = settings.bands * settings.bands;
             let first = lattice::Source {
-                t_ri: &point,
+                energy_single: point.iter().step_by(coeffs).map(|&t| t as f64).sum(),
                 bands: settings.bands,
                 medium,
             };
-            let (mut f_ms, lattice_stats) =
-                lattice::bake_multiple(field, &layout, settings.lattice, &first);
-            stats.lattice = Some(lattice_stats);
             // The unscattered light the fit takes away from a node's point value has collided
             // sooner; the share albedo of it is scattered. So T_ri + F_ms at a node is what it
             // is with point values, and at albedo 1 exactly so: the white furnace holds as before.
-            for ((f, p), t) in f_ms.iter_mut().zip(&point).zip(&t_ri) {
-                *f += medium.albedo * (p - t);
+            // The point values become that correction in place, and the lattice adds to it.
+            let mut f_ms = point;
+            for (f, t) in f_ms.iter_mut().zip(&t_ri) {
+                *f = medium.albedo * (*f - t);
             }
+            let lattice_stats =
+                lattice::bake_multiple(field, &layout, settings.lattice, &first, &mut f_ms);
+            stats.lattice = Some(lattice_stats);
             f_ms
         }
     };

@@ -167,3 +167,62 @@ fn a_thick_slab_conducts_light_as_diffusion_does() {
         "slope {slope} against {reference}"
     );
 }
+
+#[test]
+fn each_line_passes_light_to_the_next_active_cell_along_it() {
+    // Blocks with gaps between them along every axis and diagonal, so lines jump empty space and
+    // hold several cells. Every direction's sweep must hold each cell once, start a line exactly
+    // where no active cell lies upstream, follow each cell by the next active cell along d_j (a
+    // march of unit steps through the layout finds it), and start every task at a line.
+    use crate::volume::grid::{SparseGrid, TileLevel, Transform};
+    let mut g = SparseGrid::new(Transform::default(), 0.0);
+    // A 6³ grid of blocks a block apart, and one off the grid: over TASK_LINKS cells, so the
+    // sweeps split into tasks.
+    for i in 0..216 {
+        let origin = IVec3::new(i % 6, i / 6 % 6, i / 36) * 16;
+        g.insert_tile(TileLevel::Block, origin, 1.0);
+    }
+    g.insert_tile(TileLevel::Block, IVec3::new(104, 40, 8), 1.0);
+    let layout = TransferLayout::build(&g, 2);
+    let n = layout.len();
+    let (lo, hi) = layout
+        .voxels()
+        .iter()
+        .fold((IVec3::MAX, IVec3::MIN), |(a, b), v| (a.min(*v), b.max(*v)));
+    let next_along = |v: IVec3, off: IVec3| {
+        let mut step = v + off;
+        while step.cmpge(lo).all() && step.cmple(hi).all() {
+            if let Some(s) = layout.slot(step) {
+                return Some(s as u32);
+            }
+            step += off;
+        }
+        None
+    };
+    for off in Directions::new(LatticeKind::All).offsets {
+        let (sweep, place) = lines(&layout, off);
+        let slots: Vec<u32> = sweep.links.iter().map(|l| l.node & !LINE_START).collect();
+        let mut seen = vec![false; n];
+        for (i, &s) in slots.iter().enumerate() {
+            assert!(!seen[s as usize], "{off}: cell {s} twice");
+            seen[s as usize] = true;
+            assert_eq!(place[s as usize] as usize, i);
+            let v = layout.voxels()[s as usize];
+            let starts = sweep.links[i].node & LINE_START != 0;
+            assert_eq!(starts, next_along(v, -off).is_none(), "{off}: {v}");
+            let follower = sweep
+                .links
+                .get(i + 1)
+                .filter(|l| l.node & LINE_START == 0)
+                .map(|l| l.node);
+            assert_eq!(follower, next_along(v, off), "{off}: {v}");
+        }
+        assert!(seen.iter().all(|&s| s));
+        assert!(sweep.tasks.len() > 2, "{off}: one task");
+        assert_eq!(sweep.tasks.first(), Some(&0));
+        assert_eq!(sweep.tasks.last(), Some(&n));
+        for &t in &sweep.tasks[..sweep.tasks.len() - 1] {
+            assert!(sweep.links[t].node & LINE_START != 0);
+        }
+    }
+}
