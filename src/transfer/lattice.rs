@@ -39,7 +39,7 @@
 //! * **Thick cells reflect at their faces.** A cell whose line j is optically thick,
 //!   t_j = σ̄_j·h > 1 ([`REFLECT_ABOVE_DEPTH`]), sends the share λ_j = (√t_j − 1)/(√t_j + 1) of
 //!   the flux entering that line straight back along −d_j (times α, as a scattering: it leaves
-//!   in the next generation), and only 1 − λ_j enters, collides and feeds the emission, whose
+//!   when −d_j is next swept), and only 1 − λ_j enters, collides and feeds the emission, whose
 //!   shares become e_j ∝ (1 − λ_j)·w_j·σ̄_j. Without it, a cell many optical depths thick still
 //!   spreads whatever enters it uniformly over its volume and re-emits it isotropically, so two
 //!   such cells exchange light as opaque emitters, πΔc per unit area, where a resolved medium
@@ -62,8 +62,9 @@
 //!   cell upstream along −d_j; behind a gap, the light comes across the gap instead — is
 //!   P_ij = (1/ℓ_j)·∫_{Ω_j} y_i dω = 4π·w_j·ȳ_ij/ℓ_j, ȳ_ij the mean of y_i over Ω_j (by
 //!   quadrature). Generation 0 is swept like the others, without emission, and α times its
-//!   collisions feed generation 1. It is **not** read out: the renderer's unscattered part is the
-//!   fine-resolution T_ri, so F_ms = generations ≥ 1. In a white furnace the lattice's own total
+//!   collisions feed generation 1. Its unscattered light is **not** read out: the renderer's
+//!   unscattered part is the fine-resolution T_ri, so F_ms = generations ≥ 1 and the light thick
+//!   cells reflect in generation 0, which travels beside the unscattered light, apart from it. In a white furnace the lattice's own total
 //!   (generation 0 + F_ms) is then exactly √(4π) everywhere, and T_ri + F_ms = √(4π) + (T_ri −
 //!   generation 0): off only where the fine and the lattice's unscattered light still differ, a
 //!   cell or two under a surface. The former source, the first collisions gathered from the fine
@@ -83,7 +84,9 @@
 //!
 //! A generation is computed by sweeping each direction once over its lines, each line's nodes in
 //! the order of x·d_j, so flux crosses the whole volume in one sweep (Gauss–Seidel in the
-//! direction of flight); lines exchange no light within a sweep, so they go in parallel.
+//! direction of flight); lines exchange no light within a sweep, so they go in parallel. Light a
+//! cell reflects on the sweep of d_j waits for the sweep of −d_j, which takes it before the cell
+//! reflects anything along d_j again: a direction and its opposite share one buffer.
 //! Generations go on until the estimated **remaining** energy — the geometric tail Δₙ·r/(1−r) of
 //! the per-generation increments Δₙ of the DC fluence, r = Δₙ/Δₙ₋₁ — is below
 //! [`CONVERGENCE`] of the total.
@@ -249,8 +252,8 @@ struct Links {
     sweeps: Vec<Sweep>,
     /// Flux entering each line from the environment, `D × coeffs`: P_ij = 4π·w_j·ȳ_ij/ℓ_j.
     inflow: Vec<f32>,
-    /// Index of −d_j per direction.
-    opposite: Vec<usize>,
+    /// Per direction, the reflected-light buffer it shares with its opposite (module doc).
+    pair: Vec<usize>,
     /// Per cell, its row in the reflected-light buffers (`NO_LINK`: it reflects nothing).
     reflecting: Vec<u32>,
     reflecting_cells: usize,
@@ -331,11 +334,24 @@ fn build_links(
         .collect();
     Links {
         inflow: inflow(&dirs, &lengths, bands),
-        opposite: dirs.opposite,
+        pair: pairs(&dirs.opposite),
         reflecting,
         reflecting_cells,
         sweeps,
     }
+}
+
+/// Numbers each pair of opposite directions (`opposite[j]` is −d_j's index): the pair's buffer.
+fn pairs(opposite: &[usize]) -> Vec<usize> {
+    let mut pair = vec![0; opposite.len()];
+    let mut count = 0;
+    for (j, &o) in opposite.iter().enumerate() {
+        if j < o {
+            (pair[j], pair[o]) = (count, count);
+            count += 1;
+        }
+    }
+    pair
 }
 
 /// The most lattice directions there are (26).
@@ -630,8 +646,8 @@ enum Drive<'a> {
 
 /// Rows the tasks of one sweep update in parallel, each row from one task only: a sweep holds
 /// exactly one link per cell ([`lines`] places every cell once), and a cell's link alone touches
-/// the cell's rows — its fluence, its next emission, and its reflected light in the sweep's
-/// direction and the opposite one.
+/// the cell's rows — its fluence, its next emission, and its reflected light in the buffer of the
+/// sweep's direction pair.
 struct SweepRows<'a> {
     rows: *mut Row,
     len: usize,
@@ -677,8 +693,8 @@ impl<'a> SweepRows<'a> {
 }
 
 /// The state of one transport: per node the fluence read out so far, the emission of the
-/// generation being swept and the collisions that feed the next; per reflecting cell and
-/// direction, reflected light waiting to leave.
+/// generation being swept and the collisions that feed the next; per reflecting cell and pair of
+/// opposite directions, reflected light waiting to leave.
 struct State {
     fluence: Vec<Row>,
     emit: Vec<Row>,
@@ -688,7 +704,8 @@ struct State {
 
 /// Sweeps direction `j` once; returns the DC fluence it read out (when `c0 == 0`), summed task by
 /// task in a fixed order, so the result does not depend on the thread count. `INFLOW`: generation
-/// 0, the environment's light entering each line (`inflow`), unscattered, so not read out.
+/// 0, the environment's light entering each line (`inflow`), unscattered, so carried apart from
+/// the light cells reflect and not read out.
 fn sweep<const INFLOW: bool>(
     links: &Links,
     j: usize,
@@ -698,8 +715,7 @@ fn sweep<const INFLOW: bool>(
     c0: usize,
 ) -> f64 {
     let sweep = &links.sweeps[j];
-    let d = links.sweeps.len();
-    let readout = if INFLOW { 0.0 } else { 1.0 };
+    let (pairs, pair) = (links.sweeps.len() / 2, links.pair[j]);
     let emit = &state.emit;
     let fluence = SweepRows::new(&mut state.fluence);
     let next = SweepRows::new(&mut state.next);
@@ -708,30 +724,39 @@ fn sweep<const INFLOW: bool>(
         .into_par_iter()
         .map(|task| {
             let mut added = 0.0f64;
-            let mut p = ZERO_ROW;
+            // The scattered flux entering the cell, and in generation 0 the unscattered one.
+            let (mut p, mut unscattered) = (ZERO_ROW, ZERO_ROW);
             for link in &sweep.links[sweep.tasks[task]..sweep.tasks[task + 1]] {
                 if link.node & LINE_START != 0 {
-                    p = if INFLOW { inflow } else { ZERO_ROW };
+                    (p, unscattered) = (ZERO_ROW, inflow);
                 }
                 let x = (link.node & !LINE_START) as usize;
                 let e = emit[x];
-                // Reflected light is scattered light: generation 0 keeps it for generation 1.
                 let row = links.reflecting[x] as usize;
                 let reflects = row != NO_LINK as usize;
                 // SAFETY (here and below): the rows of cell x are this link's alone in this sweep
                 // (`SweepRows`).
-                let back = match reflects && !INFLOW {
-                    true => unsafe { reflected.take(row * d + j) },
+                let back = match reflects {
+                    true => unsafe { reflected.take(row * pairs + pair) },
                     false => ZERO_ROW,
                 };
+                let mut entering = p;
+                if INFLOW {
+                    for c in 0..CHUNK / 4 {
+                        entering[c] += unscattered[c];
+                    }
+                }
                 let (mut read, mut out, mut collided) = (ZERO_ROW, ZERO_ROW, ZERO_ROW);
                 let enter = 1.0 - link.reflect;
                 for c in 0..CHUNK / 4 {
-                    read[c] = readout * (p[c] * link.read_in + e[c] * link.read_emit);
+                    read[c] = p[c] * link.read_in + e[c] * link.read_emit;
                     // Only entering flux feeds the next generation: the cell's own emission
                     // re-collides inside its self-scattering gain already.
-                    collided[c] = albedo * enter * p[c] * (1.0 - link.trans);
+                    collided[c] = albedo * enter * entering[c] * (1.0 - link.trans);
                     out[c] = enter * p[c] * link.trans + e[c] * link.emit_out + back[c];
+                    if INFLOW {
+                        unscattered[c] = enter * unscattered[c] * link.trans;
+                    }
                 }
                 unsafe {
                     fluence.add(x, &read);
@@ -740,9 +765,9 @@ fn sweep<const INFLOW: bool>(
                 if reflects && link.reflect > 0.0 {
                     let mut r = ZERO_ROW;
                     for c in 0..CHUNK / 4 {
-                        r[c] = albedo * link.reflect * p[c];
+                        r[c] = albedo * link.reflect * entering[c];
                     }
-                    unsafe { reflected.add(row * d + links.opposite[j], &r) };
+                    unsafe { reflected.add(row * pairs + pair, &r) };
                 }
                 if c0 == 0 {
                     added += read[0].x as f64;
@@ -779,13 +804,11 @@ fn transport_chunk(
         }
     };
     let d = links.sweeps.len();
-    // Light a cell reflected, waiting to leave it along each direction: one buffer, read and
-    // cleared by the sweep of that direction, added to by the sweep of its opposite.
     let mut state = State {
         fluence: vec![ZERO_ROW; n],
         emit,
         next: vec![ZERO_ROW; n],
-        reflected: vec![ZERO_ROW; links.reflecting_cells * d],
+        reflected: vec![ZERO_ROW; links.reflecting_cells * (d / 2)],
     };
     let mut stats = LatticeStats {
         energy_single: first.energy_single,
@@ -795,7 +818,8 @@ fn transport_chunk(
     let limit = generations.unwrap_or(MAX_GENERATIONS);
     for generation in start..=limit {
         // Generation 0 is the unscattered light: it enters from the environment, emits nothing
-        // (`emit` starts at zero) and is not read out, since T_ri stands for it.
+        // (`emit` starts at zero) and is not read out, since T_ri stands for it; only what thick
+        // cells reflect of it is.
         let inflow = generation == 0;
         state.next.iter_mut().for_each(|v| *v = ZERO_ROW);
         let mut added = 0.0f64;
@@ -810,8 +834,10 @@ fn transport_chunk(
         }
         std::mem::swap(&mut state.emit, &mut state.next);
         stats.generations = generation;
-        if generations.is_none() && !inflow {
+        if generations.is_none() {
             stats.energy_multiple += added;
+        }
+        if generations.is_none() && !inflow {
             let total = stats.energy_single + stats.energy_multiple;
             let r = if previous > 0.0 {
                 added / previous
