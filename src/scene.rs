@@ -142,7 +142,7 @@ impl Scene {
     /// plan says), reporting its phases to `progress`.
     pub fn bake(&mut self, config: &BakeConfig, progress: &dyn Phases) -> BakeStats {
         let (transfer, stats) =
-            crate::transfer::bake(&self.field, config.medium, &config.settings, progress);
+            crate::transfer::bake(&mut self.field, config.medium, &config.settings, progress);
         self.medium = config.medium;
         self.transfer = Some(transfer);
         self.forget_suns();

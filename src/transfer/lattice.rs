@@ -868,51 +868,75 @@ fn lanes(values: &[f32]) -> Row {
     row
 }
 
-/// What the lattice works with: the medium, the SH band count, and the energy of the unscattered
+/// What a transport works with: the medium, the SH band count, and the energy of the unscattered
 /// light (Σ over nodes of T_ri's DC coefficient), against which the remaining energy is weighed;
 /// the lattice's source is the environment (module doc).
-pub struct Source {
-    pub energy_single: f64,
+struct Source {
+    energy_single: f64,
     /// `bands²` coefficients per voxel.
-    pub bands: usize,
-    pub medium: Medium,
+    bands: usize,
+    medium: Medium,
 }
 
-/// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × coeffs`), a chunk of
-/// coefficients at a time, each chunk's sweeps running in parallel.
-pub fn bake_multiple(
-    field: &DensityField,
-    layout: &TransferLayout,
-    kind: LatticeKind,
-    first: &Source,
-    f_ms: &mut [f32],
-) -> LatticeStats {
-    let coeffs = first.bands * first.bands;
-    let dirs = Directions::new(kind);
-    let links = build_links(field, layout, first.medium, dirs, first.bands);
-    // The DC term alone first: its run decides the generation count, so it carries no more than
-    // it must.
-    let chunks = std::iter::once((0, 1)).chain(
-        (1..coeffs)
-            .step_by(CHUNK)
-            .map(|c0| (c0, CHUNK.min(coeffs - c0))),
-    );
-    let mut stats = None;
-    for (c0, width) in chunks {
-        // The chunk holding the DC term decides the generation count by energy; the operator is
-        // the same for every coefficient, so the other chunks run exactly as many generations.
-        let generations = stats.map(|s: LatticeStats| s.generations);
-        let drive = Drive::Environment { c0, width };
-        let (fluence, chunk_stats) = transport_chunk(&links, first, drive, generations);
-        stats.get_or_insert(chunk_stats);
-        for (f, row) in f_ms.chunks_exact_mut(coeffs).zip(&fluence) {
-            let lanes = row.iter().flat_map(|v| v.to_array());
-            for (out, value) in f[c0..c0 + width].iter_mut().zip(lanes) {
-                *out += value;
+/// The lattice of a layout, built from the density: every cell's links along every direction.
+/// Once built it needs the density no more.
+pub struct Lattice {
+    links: Links,
+    medium: Medium,
+}
+
+impl Lattice {
+    pub fn build(
+        field: &DensityField,
+        layout: &TransferLayout,
+        kind: LatticeKind,
+        medium: Medium,
+        bands: usize,
+    ) -> Lattice {
+        let links = build_links(field, layout, medium, Directions::new(kind), bands);
+        Lattice { links, medium }
+    }
+
+    /// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × coeffs`), a chunk of
+    /// coefficients at a time, each chunk's sweeps running in parallel. `energy_single` is Σ over
+    /// nodes of T_ri's DC coefficient (the remaining energy is weighed against it).
+    pub fn bake_multiple(
+        &self,
+        bands: usize,
+        energy_single: f64,
+        f_ms: &mut [f32],
+    ) -> LatticeStats {
+        let coeffs = bands * bands;
+        let first = Source {
+            energy_single,
+            bands,
+            medium: self.medium,
+        };
+        // The DC term alone first: its run decides the generation count, so it carries no more
+        // than it must.
+        let chunks = std::iter::once((0, 1)).chain(
+            (1..coeffs)
+                .step_by(CHUNK)
+                .map(|c0| (c0, CHUNK.min(coeffs - c0))),
+        );
+        let mut stats = None;
+        for (c0, width) in chunks {
+            // The chunk holding the DC term decides the generation count by energy; the operator
+            // is the same for every coefficient, so the other chunks run exactly as many
+            // generations.
+            let generations = stats.map(|s: LatticeStats| s.generations);
+            let drive = Drive::Environment { c0, width };
+            let (fluence, chunk_stats) = transport_chunk(&self.links, &first, drive, generations);
+            stats.get_or_insert(chunk_stats);
+            for (f, row) in f_ms.chunks_exact_mut(coeffs).zip(&fluence) {
+                let lanes = row.iter().flat_map(|v| v.to_array());
+                for (out, value) in f[c0..c0 + width].iter_mut().zip(lanes) {
+                    *out += value;
+                }
             }
         }
+        stats.unwrap_or_default()
     }
-    stats.unwrap_or_default()
 }
 
 /// The multiply scattered fluence of light whose first scattering is known: `emission[x]` is the

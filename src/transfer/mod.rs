@@ -84,9 +84,10 @@ pub struct BakeStats {
     pub lattice: Option<lattice::LatticeStats>,
 }
 
-/// Bakes the transfer of `density`: layout, T_ri, then (unless single-scatter) F_ms.
+/// Bakes the transfer of `field`: layout, T_ri, then (unless single-scatter) F_ms. The field's
+/// bricks are released for the lattice phase (the next sampler builds them again).
 pub fn bake(
-    field: &DensityField,
+    field: &mut DensityField,
     medium: Medium,
     settings: &BakeSettings,
     progress: &dyn crate::io::progress::Phases,
@@ -136,11 +137,7 @@ pub fn bake(
         false => {
             progress.phase("lattice", 0);
             let coeffs = settings.bands * settings.bands;
-            let first = lattice::Source {
-                energy_single: point.iter().step_by(coeffs).map(|&t| t as f64).sum(),
-                bands: settings.bands,
-                medium,
-            };
+            let energy_single = point.iter().step_by(coeffs).map(|&t| t as f64).sum();
             // The unscattered light the fit takes away from a node's point value has collided
             // sooner; the share albedo of it is scattered. So T_ri + F_ms at a node is what it
             // is with point values, and at albedo 1 exactly so: the white furnace holds as before.
@@ -149,9 +146,11 @@ pub fn bake(
             for (f, t) in f_ms.iter_mut().zip(&t_ri) {
                 *f = medium.albedo * (*f - t);
             }
-            let lattice_stats =
-                lattice::bake_multiple(field, &layout, settings.lattice, &first, &mut f_ms);
-            stats.lattice = Some(lattice_stats);
+            let lattice =
+                lattice::Lattice::build(field, &layout, settings.lattice, medium, settings.bands);
+            // The lattice samples no density: its transport runs without the bricks.
+            field.release_bricks();
+            stats.lattice = Some(lattice.bake_multiple(settings.bands, energy_single, &mut f_ms));
             f_ms
         }
     };

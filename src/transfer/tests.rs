@@ -79,7 +79,7 @@ fn furnace_bake(file: &str, sigma_t: f32, k: i32) -> (SparseGrid, Transfer) {
         albedo: 1.0,
     };
     let (t, _) = bake(
-        &DensityField::new(d.clone()),
+        &mut DensityField::new(d.clone()),
         medium,
         &settings(1, k),
         &crate::io::progress::Bars { quiet: true },
@@ -140,13 +140,13 @@ fn white_furnace_where_the_volume_is_optically_thick() {
 #[test]
 fn albedo_zero_scatters_nothing() {
     let d = load("torus.vdb");
-    let f = DensityField::new(d.clone());
+    let mut f = DensityField::new(d.clone());
     let medium = Medium {
         sigma_t: 0.5,
         albedo: 0.0,
     };
     let (t, _) = bake(
-        &f,
+        &mut f,
         medium,
         &settings(2, 6),
         &crate::io::progress::Bars { quiet: true },
@@ -195,13 +195,13 @@ fn light_from_the_zenith_lights_the_top() {
             .for_each(|(c, y)| *c += (e * y) as f32);
     }
     let d = load("sphere_fog.vdb");
-    let f = DensityField::new(d.clone());
+    let mut f = DensityField::new(d.clone());
     let medium = Medium {
         sigma_t: 0.3,
         albedo: 0.9,
     };
     let (t, _) = bake(
-        &f,
+        &mut f,
         medium,
         &settings(bands, 4),
         &crate::io::progress::Bars { quiet: true },
@@ -357,7 +357,7 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
     // brute-force transmittance on the thin torus, where the nodes' point values do not satisfy
     // it (their interpolant is too bright around the tubes).
     let d = load("torus.vdb");
-    let f = DensityField::new(d.clone());
+    let mut f = DensityField::new(d.clone());
     let medium = Medium {
         sigma_t: 0.1,
         albedo: 0.9,
@@ -368,7 +368,7 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
         ..settings(1, 6)
     };
     let (t, _) = bake(
-        &f,
+        &mut f,
         medium,
         &settings,
         &crate::io::progress::Bars { quiet: true },

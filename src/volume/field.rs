@@ -3,6 +3,8 @@
 //! trilinear sample a hash lookup per block and eight loads. Every density sample anywhere goes
 //! through [`DensityField::sampler`].
 
+use std::sync::OnceLock;
+
 use super::bricks::{BrickSampler, Bricks};
 use super::dda::Occupancy;
 use super::grid::SparseGrid;
@@ -11,7 +13,11 @@ use super::grid::SparseGrid;
 pub struct DensityField {
     pub grid: SparseGrid,
     pub occupancy: Occupancy,
-    pub bricks: Bricks,
+    /// Built with the field; a bake releases them for its lattice phase (they are the largest
+    /// accelerator and the lattice samples no density), and the next sampler builds them again.
+    bricks: OnceLock<Bricks>,
+    /// The bricks' bytes, held or not: what a sampler will hold.
+    brick_bytes: usize,
 }
 
 impl DensityField {
@@ -22,17 +28,24 @@ impl DensityField {
         DensityField {
             grid,
             occupancy,
-            bricks,
+            brick_bytes: bricks.memory_bytes(),
+            bricks: OnceLock::from(bricks),
         }
     }
 
     /// A sampler for one ray (one thread): the trilinear density at index-space points.
     pub fn sampler(&self) -> BrickSampler<'_> {
-        BrickSampler::new(&self.bricks, &self.grid)
+        let bricks = self.bricks.get_or_init(|| Bricks::build(&self.grid));
+        BrickSampler::new(bricks, &self.grid)
     }
 
-    /// Bytes held by the accelerators (the grid counts its own).
+    /// Frees the bricks until the next [`DensityField::sampler`] builds them again.
+    pub fn release_bricks(&mut self) {
+        self.bricks.take();
+    }
+
+    /// Bytes of the accelerators once built, released or not (the grid counts its own).
     pub fn accelerator_bytes(&self) -> usize {
-        self.bricks.memory_bytes()
+        self.brick_bytes
     }
 }
