@@ -284,7 +284,13 @@ impl Scene {
     pub fn sun_solve_plan(&self, lighting: &Lighting) -> u64 {
         match &self.transfer {
             Some(t) if self.new_suns(lighting) > 0 => t.lattice.map_or(0, |kind| {
-                crate::transfer::memory::sun_solve_bytes(t.layout.len(), kind.directions())
+                let reflecting = crate::transfer::lattice::DensityMeans::new(&self.field.grid)
+                    .reflecting_share(self.medium.sigma_t, t.layout.k);
+                crate::transfer::memory::sun_solve_bytes(
+                    t.layout.len(),
+                    kind.directions(),
+                    reflecting,
+                )
             }),
             _ => 0,
         }

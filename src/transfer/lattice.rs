@@ -232,6 +232,13 @@ const LINE_START: u32 = 1 << 31;
 /// costs nothing next to the links, few enough that two threads share a small lattice.
 const TASK_LINKS: usize = 4096;
 
+/// Links a sweep holds, at least, for its tasks to run in parallel, one chunk of coefficients
+/// at a time; below it the chunks run in parallel, each sweep one task. A parallel sweep ends
+/// where every task has, so on a busy machine a thread the system pauses holds the others up at
+/// each of the 26 sweeps a generation: worth it only where a sweep is long, and that is where one
+/// chunk's state in memory instead of one a thread counts (its reflected light is 416 bytes a cell).
+pub(crate) const PARALLEL_SWEEP_LINKS: usize = 1 << 16;
+
 /// Cells whose links are computed together before they are written to their sweeps: the block's
 /// links (26 × 24 bytes a cell) are all the building holds beyond the sweeps themselves.
 const LINK_BLOCK: usize = 1 << 15;
@@ -257,6 +264,8 @@ struct Links {
     /// Per cell, its row in the reflected-light buffers (`NO_LINK`: it reflects nothing).
     reflecting: Vec<u32>,
     reflecting_cells: usize,
+    /// Whether a sweep's tasks run in parallel ([`PARALLEL_SWEEP_LINKS`]).
+    parallel_sweeps: bool,
 }
 
 /// What the lattice did, for `--stats`.
@@ -337,6 +346,7 @@ fn build_links(
         pair: pairs(&dirs.opposite),
         reflecting,
         reflecting_cells,
+        parallel_sweeps: n >= PARALLEL_SWEEP_LINKS,
         sweeps,
     }
 }
@@ -720,66 +730,68 @@ fn sweep<const INFLOW: bool>(
     let fluence = SweepRows::new(&mut state.fluence);
     let next = SweepRows::new(&mut state.next);
     let reflected = SweepRows::new(&mut state.reflected);
-    let added: Vec<f64> = (0..sweep.tasks.len() - 1)
-        .into_par_iter()
-        .map(|task| {
-            let mut added = 0.0f64;
-            // The scattered flux entering the cell, and in generation 0 the unscattered one.
-            let (mut p, mut unscattered) = (ZERO_ROW, ZERO_ROW);
-            for link in &sweep.links[sweep.tasks[task]..sweep.tasks[task + 1]] {
-                if link.node & LINE_START != 0 {
-                    (p, unscattered) = (ZERO_ROW, inflow);
-                }
-                let x = (link.node & !LINE_START) as usize;
-                let e = emit[x];
-                let row = links.reflecting[x] as usize;
-                let reflects = row != NO_LINK as usize;
-                // SAFETY (here and below): the rows of cell x are this link's alone in this sweep
-                // (`SweepRows`).
-                let back = match reflects {
-                    true => unsafe { reflected.take(row * pairs + pair) },
-                    false => ZERO_ROW,
-                };
-                let mut entering = p;
-                if INFLOW {
-                    for c in 0..CHUNK / 4 {
-                        entering[c] += unscattered[c];
-                    }
-                }
-                let (mut read, mut out, mut collided) = (ZERO_ROW, ZERO_ROW, ZERO_ROW);
-                let enter = 1.0 - link.reflect;
+    let task = |task: usize| {
+        let mut added = 0.0f64;
+        // The scattered flux entering the cell, and in generation 0 the unscattered one.
+        let (mut p, mut unscattered) = (ZERO_ROW, ZERO_ROW);
+        for link in &sweep.links[sweep.tasks[task]..sweep.tasks[task + 1]] {
+            if link.node & LINE_START != 0 {
+                (p, unscattered) = (ZERO_ROW, inflow);
+            }
+            let x = (link.node & !LINE_START) as usize;
+            let e = emit[x];
+            let row = links.reflecting[x] as usize;
+            let reflects = row != NO_LINK as usize;
+            // SAFETY (here and below): the rows of cell x are this link's alone in this sweep
+            // (`SweepRows`).
+            let back = match reflects {
+                true => unsafe { reflected.take(row * pairs + pair) },
+                false => ZERO_ROW,
+            };
+            let mut entering = p;
+            if INFLOW {
                 for c in 0..CHUNK / 4 {
-                    read[c] = p[c] * link.read_in + e[c] * link.read_emit;
-                    // Only entering flux feeds the next generation: the cell's own emission
-                    // re-collides inside its self-scattering gain already.
-                    collided[c] = albedo * enter * entering[c] * (1.0 - link.trans);
-                    out[c] = enter * p[c] * link.trans + e[c] * link.emit_out + back[c];
-                    if INFLOW {
-                        unscattered[c] = enter * unscattered[c] * link.trans;
-                    }
-                }
-                unsafe {
-                    fluence.add(x, &read);
-                    next.add(x, &collided);
-                }
-                if reflects && link.reflect > 0.0 {
-                    let mut r = ZERO_ROW;
-                    for c in 0..CHUNK / 4 {
-                        r[c] = albedo * link.reflect * entering[c];
-                    }
-                    unsafe { reflected.add(row * pairs + pair, &r) };
-                }
-                if c0 == 0 {
-                    added += read[0].x as f64;
-                }
-                // What leaves enters the next cell of the line, as it would a fresh cell's zero.
-                for c in 0..CHUNK / 4 {
-                    p[c] = Vec4::ZERO + out[c];
+                    entering[c] += unscattered[c];
                 }
             }
-            added
-        })
-        .collect();
+            let (mut read, mut out, mut collided) = (ZERO_ROW, ZERO_ROW, ZERO_ROW);
+            let enter = 1.0 - link.reflect;
+            for c in 0..CHUNK / 4 {
+                read[c] = p[c] * link.read_in + e[c] * link.read_emit;
+                // Only entering flux feeds the next generation: the cell's own emission
+                // re-collides inside its self-scattering gain already.
+                collided[c] = albedo * enter * entering[c] * (1.0 - link.trans);
+                out[c] = enter * p[c] * link.trans + e[c] * link.emit_out + back[c];
+                if INFLOW {
+                    unscattered[c] = enter * unscattered[c] * link.trans;
+                }
+            }
+            unsafe {
+                fluence.add(x, &read);
+                next.add(x, &collided);
+            }
+            if reflects && link.reflect > 0.0 {
+                let mut r = ZERO_ROW;
+                for c in 0..CHUNK / 4 {
+                    r[c] = albedo * link.reflect * entering[c];
+                }
+                unsafe { reflected.add(row * pairs + pair, &r) };
+            }
+            if c0 == 0 {
+                added += read[0].x as f64;
+            }
+            // What leaves enters the next cell of the line, as it would a fresh cell's zero.
+            for c in 0..CHUNK / 4 {
+                p[c] = Vec4::ZERO + out[c];
+            }
+        }
+        added
+    };
+    let tasks = 0..sweep.tasks.len() - 1;
+    let added: Vec<f64> = match links.parallel_sweeps {
+        true => tasks.into_par_iter().map(task).collect(),
+        false => tasks.map(task).collect(),
+    };
     added.iter().sum()
 }
 
@@ -897,9 +909,10 @@ impl Lattice {
         Lattice { links, medium }
     }
 
-    /// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × coeffs`), a chunk of
-    /// coefficients at a time, each chunk's sweeps running in parallel. `energy_single` is Σ over
-    /// nodes of T_ri's DC coefficient (the remaining energy is weighed against it).
+    /// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × coeffs`), chunk by chunk of
+    /// coefficients, the chunks or each chunk's sweeps in parallel ([`PARALLEL_SWEEP_LINKS`]).
+    /// `energy_single` is Σ over nodes of T_ri's DC coefficient (the remaining energy is weighed
+    /// against it).
     pub fn bake_multiple(
         &self,
         bands: usize,
@@ -912,30 +925,39 @@ impl Lattice {
             bands,
             medium: self.medium,
         };
-        // The DC term alone first: its run decides the generation count, so it carries no more
-        // than it must.
-        let chunks = std::iter::once((0, 1)).chain(
-            (1..coeffs)
-                .step_by(CHUNK)
-                .map(|c0| (c0, CHUNK.min(coeffs - c0))),
-        );
-        let mut stats = None;
-        for (c0, width) in chunks {
-            // The chunk holding the DC term decides the generation count by energy; the operator
-            // is the same for every coefficient, so the other chunks run exactly as many
-            // generations.
-            let generations = stats.map(|s: LatticeStats| s.generations);
-            let drive = Drive::Environment { c0, width };
-            let (fluence, chunk_stats) = transport_chunk(&self.links, &first, drive, generations);
-            stats.get_or_insert(chunk_stats);
-            for (f, row) in f_ms.chunks_exact_mut(coeffs).zip(&fluence) {
+        let add = |f_ms: &mut [f32], (c0, width): (usize, usize), fluence: &[Row]| {
+            for (f, row) in f_ms.chunks_exact_mut(coeffs).zip(fluence) {
                 let lanes = row.iter().flat_map(|v| v.to_array());
                 for (out, value) in f[c0..c0 + width].iter_mut().zip(lanes) {
                     *out += value;
                 }
             }
+        };
+        // The DC term alone first: its run decides the generation count by energy, so it
+        // carries no more than it must; the operator is the same for every coefficient, so the
+        // other chunks run exactly as many generations.
+        let drive = |(c0, width)| Drive::Environment { c0, width };
+        let (head, stats) = transport_chunk(&self.links, &first, drive((0, 1)), None);
+        add(f_ms, (0, 1), &head);
+        drop(head);
+        let rest: Vec<(usize, usize)> = (1..coeffs)
+            .step_by(CHUNK)
+            .map(|c0| (c0, CHUNK.min(coeffs - c0)))
+            .collect();
+        let in_flight = match self.links.parallel_sweeps {
+            true => 1,
+            false => rayon::current_num_threads(),
+        };
+        for group in rest.chunks(in_flight) {
+            let parts: Vec<Vec<Row>> = group
+                .par_iter()
+                .map(|&c| transport_chunk(&self.links, &first, drive(c), Some(stats.generations)).0)
+                .collect();
+            for (&c, fluence) in group.iter().zip(&parts) {
+                add(f_ms, c, fluence);
+            }
         }
-        stats.unwrap_or_default()
+        stats
     }
 }
 

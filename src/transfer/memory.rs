@@ -50,8 +50,13 @@ pub struct MemoryEstimate {
 }
 
 impl MemoryEstimate {
+    /// `field_bytes`: the density with its accelerators, of which `brick_bytes` are released for
+    /// the lattice's transport; `reflecting`: the share of cells that reflect
+    /// ([`lattice::DensityMeans::reflecting_share`]).
+    #[allow(clippy::too_many_arguments)]
     fn new(
         field_bytes: usize,
+        brick_bytes: usize,
         layout_bytes: usize,
         voxels: usize,
         settings: &BakeSettings,
@@ -61,32 +66,39 @@ impl MemoryEstimate {
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
         let one = n * c * 4;
+        // The phases beyond the density and the two copies of the coefficients (T_ri's point
+        // values, which become F_ms, and the fitted T_ri):
+        // - T_ri: the direction sets' SH weights and the far field's coarser density;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
-        // Single: the point values kept beside the fitted T_ri, and batch results before they
-        // are scattered into either (two more copies of T_ri); the coarser density of the far field.
         let far = match far_field {
             true => (field_bytes as f64 * FAR_FIELD_SHARE) as u64,
             false => 0,
         };
-        let single = 2 * one + sets + far;
-        // Lattice: per-chunk results (one more copy); per link a record in its sweep (28 bytes),
-        // and either the per-cell values the records are gathered from (24 bytes, while the links
-        // are built) or four chunk buffers a thread, and for the cells that reflect (the share
-        // of the active voxels in thick leaves and tiles) one more per direction (while swept).
-        let d = settings.lattice.directions() as u64;
-        // The point values of T_ri stay alive through the lattice (one more copy).
-        let lattice = if settings.single_scatter {
-            0
-        } else {
-            let rows = 4.0 + reflecting * d as f64;
-            let chunks = (threads as f64 * rows * (n * lattice::CHUNK as u64 * 4) as f64) as u64;
-            2 * one + n * d * LINK_RECORD_BYTES + (n * d * LINK_GATHER_BYTES).max(chunks)
+        let single = sets + far;
+        // - the fit: the mass matrix's rows, and a CG solve's vectors a thread;
+        let fit = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
+        // - the lattice: its links, with their places while they are built, and then one chunk's
+        //   transport beside them, the bricks released.
+        let lattice = match settings.single_scatter {
+            true => 0,
+            false => {
+                let d = settings.lattice.directions();
+                let links = n * d as u64 * LINK_RECORD_BYTES;
+                let build = links + n * d as u64 * LINK_PLACE_BYTES;
+                // Small lattices transport a chunk a thread, large ones one chunk at a time.
+                let in_flight = match voxels >= lattice::PARALLEL_SWEEP_LINKS {
+                    true => 1,
+                    false => threads as u64,
+                };
+                let transport = links + in_flight * transport_bytes(voxels, d, reflecting);
+                build.max(transport.saturating_sub(brick_bytes as u64))
+            }
         };
         MemoryEstimate {
             density: field_bytes as u64,
             layout: layout_bytes as u64,
             transfer: 2 * one,
-            working: single.max(lattice) + PROCESS_BASELINE,
+            working: single.max(fit).max(lattice) + PROCESS_BASELINE,
         }
     }
 
@@ -96,15 +108,31 @@ impl MemoryEstimate {
 }
 
 /// Bytes of a lattice link's record in its sweep.
-const LINK_RECORD_BYTES: u64 = 28;
-/// Bytes per link of the per-cell values the records are gathered from, while the links are built.
-const LINK_GATHER_BYTES: u64 = 24;
+const LINK_RECORD_BYTES: u64 = 24;
+/// Bytes per link of its place in its sweep, held while the links are built.
+const LINK_PLACE_BYTES: u64 = 4;
+/// Bytes of a row of a chunk's transport state: `lattice::CHUNK` f32 lanes.
+const TRANSPORT_ROW_BYTES: u64 = lattice::CHUNK as u64 * 4;
+/// Bytes per node of the fit's mass-matrix row: at most 27 (slot, weight) entries of 16 bytes,
+/// the allocator's header, and the row's own weight and vector.
+const FIT_ROW_BYTES: u64 = 27 * 16 + 16 + 32;
+/// Bytes per node of one column's conjugate-gradient solve: ten f64 vectors.
+const FIT_SOLVE_BYTES: u64 = 10 * 8;
+
+/// One transport's state beside the links: per node its fluence, emission and next emission,
+/// and per reflecting cell a buffer per pair of opposite directions.
+fn transport_bytes(voxels: usize, directions: usize, reflecting: f64) -> u64 {
+    let rows = 3.0 + reflecting * (directions / 2) as f64;
+    (rows * voxels as f64) as u64 * TRANSPORT_ROW_BYTES
+}
 
 /// Working memory of one sun's multiple-scattering solve on a lattice of `directions` over
-/// `transfer_voxels` ([`lattice::solve_emission`]): its links, while they are built. One value a
-/// node is all it solves for, so its chunk buffers are small beside them.
-pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize) -> u64 {
-    transfer_voxels as u64 * directions as u64 * (LINK_RECORD_BYTES + LINK_GATHER_BYTES)
+/// `transfer_voxels` ([`lattice::solve_emission`]), `reflecting` the share of cells that reflect:
+/// its links while they are built, or beside the transport of its one value a node.
+pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f64) -> u64 {
+    let links = transfer_voxels as u64 * directions as u64 * LINK_RECORD_BYTES;
+    let build = transfer_voxels as u64 * directions as u64 * LINK_PLACE_BYTES;
+    links + build.max(transport_bytes(transfer_voxels, directions, reflecting))
 }
 
 /// Above this many transfer voxels (by [`TransferLayout::estimate_len`]) a plan estimates the
@@ -365,6 +393,7 @@ fn estimate(
 ) -> MemoryEstimate {
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.accelerator_bytes(),
+        field.accelerator_bytes(),
         layout_bytes,
         voxels,
         settings,
