@@ -135,16 +135,35 @@ pub fn spread_starts(
     Some(starts)
 }
 
-/// One node's row of the mass matrix: S_n and the (slot, M_nm) entries.
+/// Neighbours of a node in its mass-matrix row: itself and the 26 around it.
+const STENCIL: usize = 27;
+/// Marks a stencil entry with no node (no transfer voxel there, or no weight).
+const NO_NODE: u32 = u32::MAX;
+
+/// One node's row of the mass matrix: S_n and the M_nm toward each stencil neighbour m. Fixed
+/// arrays, not a list per row: a million rows allocated one by one stayed in the allocator's
+/// heap after the fit and under every later phase of a bake.
 struct Row {
     mass: f64,
-    entries: Vec<(u32, f64)>,
+    nodes: [u32; STENCIL],
+    weights: [f64; STENCIL],
+}
+
+impl Row {
+    /// The (slot, M_nm) entries, in stencil order.
+    fn entries(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
+        self.nodes
+            .iter()
+            .zip(&self.weights)
+            .filter(|(m, _)| **m != NO_NODE)
+            .map(|(m, a)| (*m, *a))
+    }
 }
 
 fn row(density: &SparseGrid, layout: &TransferLayout, v: IVec3) -> Row {
     let k = layout.k;
     let (cells, cumulative) = footprint(density, k, v);
-    let mut stencil = [0f64; 27];
+    let mut stencil = [0f64; STENCIL];
     let mut previous = 0.0;
     for (o, c) in cells.iter().zip(&cumulative) {
         let weight = c - previous; // ρ·w_n of this voxel
@@ -163,18 +182,17 @@ fn row(density: &SparseGrid, layout: &TransferLayout, v: IVec3) -> Row {
             }
         }
     }
-    let entries = stencil
-        .iter()
-        .enumerate()
-        .filter(|(_, m)| **m > 0.0)
-        .filter_map(|(i, m)| {
-            let d = IVec3::new(i as i32 / 9, (i as i32 / 3) % 3, i as i32 % 3) - 1;
-            layout.slot(v + d).map(|s| (s as u32, *m))
-        })
-        .collect();
+    let mut nodes = [NO_NODE; STENCIL];
+    for (i, (node, m)) in nodes.iter_mut().zip(&stencil).enumerate() {
+        let d = IVec3::new(i as i32 / 9, (i as i32 / 3) % 3, i as i32 % 3) - 1;
+        if let (true, Some(s)) = (*m > 0.0, layout.slot(v + d)) {
+            *node = s as u32;
+        }
+    }
     Row {
         mass: previous,
-        entries,
+        nodes,
+        weights: stencil,
     }
 }
 
@@ -226,18 +244,13 @@ pub fn least_squares(
     let diagonal: Vec<f64> = rows
         .iter()
         .enumerate()
-        .map(|(s, r)| {
-            r.entries
-                .iter()
-                .find(|e| e.0 as usize == s)
-                .map_or(1.0, |e| e.1)
-        })
+        .map(|(s, r)| r.entries().find(|e| e.0 as usize == s).map_or(1.0, |e| e.1))
         .collect();
     // y = M·x over the free nodes.
     let apply = |x: &[f64], y: &mut [f64]| {
         for (s, (yi, r)) in y.iter_mut().zip(&rows).enumerate() {
             *yi = match free[s] {
-                true => r.entries.iter().map(|&(m, a)| a * x[m as usize]).sum(),
+                true => r.entries().map(|(m, a)| a * x[m as usize]).sum(),
                 false => 0.0,
             };
         }

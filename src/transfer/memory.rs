@@ -113,9 +113,8 @@ const LINK_RECORD_BYTES: u64 = 24;
 const LINK_PLACE_BYTES: u64 = 4;
 /// Bytes of a row of a chunk's transport state: `lattice::CHUNK` f32 lanes.
 const TRANSPORT_ROW_BYTES: u64 = lattice::CHUNK as u64 * 4;
-/// Bytes per node of the fit's mass-matrix row: at most 27 (slot, weight) entries of 16 bytes,
-/// the allocator's header, and the row's own weight and vector.
-const FIT_ROW_BYTES: u64 = 27 * 16 + 16 + 32;
+/// Bytes per node of the fit's mass-matrix row: its weight, and 27 slots and weights.
+const FIT_ROW_BYTES: u64 = 8 + 27 * (4 + 8);
 /// Bytes per node of one column's conjugate-gradient solve: ten f64 vectors.
 const FIT_SOLVE_BYTES: u64 = 10 * 8;
 
