@@ -85,7 +85,7 @@ pub struct BakeStats {
 }
 
 /// Bakes the transfer of `field`: layout, T_ri, then (unless single-scatter) F_ms. The field's
-/// bricks are released for the lattice phase (the next sampler builds them again).
+/// bricks are released while the lattice transports light, and built again after.
 pub fn bake(
     field: &mut DensityField,
     medium: Medium,
@@ -148,9 +148,12 @@ pub fn bake(
             }
             let lattice =
                 lattice::Lattice::build(field, &layout, settings.lattice, medium, settings.bands);
-            // The lattice samples no density: its transport runs without the bricks.
+            // The transport samples no density: it runs without the bricks, built again once the
+            // links are gone.
             field.release_bricks();
             stats.lattice = Some(lattice.bake_multiple(settings.bands, energy_single, &mut f_ms));
+            drop(lattice);
+            field.restore_bricks();
             f_ms
         }
     };

@@ -64,6 +64,15 @@ pub struct Bricks {
 }
 
 impl Bricks {
+    /// No bricks: every sample goes to the fallback sampler, which reads the same values.
+    pub fn empty() -> Bricks {
+        Bricks {
+            entries: HashMap::new(),
+            values: Vec::new(),
+            node_tiles: HashMap::new(),
+        }
+    }
+
     pub fn build(grid: &SparseGrid) -> Bricks {
         // Which entries are uniform is decided in parallel; the bricks are then numbered in key
         // order (deterministic) and filled in parallel in place, so the build holds the bricks
