@@ -725,7 +725,9 @@ fn sweep<const INFLOW: bool>(
     c0: usize,
 ) -> f64 {
     let sweep = &links.sweeps[j];
-    let (pairs, pair) = (links.sweeps.len() / 2, links.pair[j]);
+    // The pair's buffers are one run of rows, a reflecting cell's row in it: a sweep touches one
+    // pair's rows only, so they share no cache line with the other pairs'.
+    let waiting = links.pair[j] * links.reflecting_cells;
     let emit = &state.emit;
     let fluence = SweepRows::new(&mut state.fluence);
     let next = SweepRows::new(&mut state.next);
@@ -745,7 +747,7 @@ fn sweep<const INFLOW: bool>(
             // SAFETY (here and below): the rows of cell x are this link's alone in this sweep
             // (`SweepRows`).
             let back = match reflects {
-                true => unsafe { reflected.take(row * pairs + pair) },
+                true => unsafe { reflected.take(waiting + row) },
                 false => ZERO_ROW,
             };
             let mut entering = p;
@@ -775,7 +777,7 @@ fn sweep<const INFLOW: bool>(
                 for c in 0..CHUNK / 4 {
                     r[c] = albedo * link.reflect * entering[c];
                 }
-                unsafe { reflected.add(row * pairs + pair, &r) };
+                unsafe { reflected.add(waiting + row, &r) };
             }
             if c0 == 0 {
                 added += read[0].x as f64;
