@@ -678,6 +678,16 @@ impl<'a> SweepRows<'a> {
         }
     }
 
+    /// Row `i`.
+    ///
+    /// # Safety
+    /// No task of the sweep writes row `i`.
+    unsafe fn get(&self, i: usize) -> Row {
+        assert!(i < self.len);
+        // SAFETY: in bounds, and nobody writes it (the caller's promise).
+        unsafe { std::ptr::read(self.rows.add(i)) }
+    }
+
     /// Row `i`, left zero.
     ///
     /// # Safety
@@ -702,15 +712,22 @@ impl<'a> SweepRows<'a> {
     }
 }
 
-/// The state of one transport: per node the fluence read out so far, the emission of the
-/// generation being swept and the collisions that feed the next; per reflecting cell and pair of
-/// opposite directions, reflected light waiting to leave.
+/// The state of one transport: per node the emission of the generation being swept, the
+/// collisions that feed the next and the fluence read out so far, side by side (one place in
+/// memory a link reaches, not three); per reflecting cell and pair of opposite directions,
+/// reflected light waiting to leave.
 struct State {
-    fluence: Vec<Row>,
-    emit: Vec<Row>,
-    next: Vec<Row>,
+    /// [`NODE_ROWS`] rows a node: `emitting`, the other of the first two (next), then fluence.
+    nodes: Vec<Row>,
+    /// Which of a node's first two rows holds the emission; they trade places each generation.
+    emitting: usize,
     reflected: Vec<Row>,
 }
+
+/// A node's rows in [`State::nodes`].
+const NODE_ROWS: usize = 3;
+/// The fluence's place among them.
+const FLUENCE: usize = 2;
 
 /// Sweeps direction `j` once; returns the DC fluence it read out (when `c0 == 0`), summed task by
 /// task in a fixed order, so the result does not depend on the thread count. `INFLOW`: generation
@@ -728,9 +745,8 @@ fn sweep<const INFLOW: bool>(
     // The pair's buffers are one run of rows, a reflecting cell's row in it: a sweep touches one
     // pair's rows only, so they share no cache line with the other pairs'.
     let waiting = links.pair[j] * links.reflecting_cells;
-    let emit = &state.emit;
-    let fluence = SweepRows::new(&mut state.fluence);
-    let next = SweepRows::new(&mut state.next);
+    let (emitting, next) = (state.emitting, 1 - state.emitting);
+    let nodes = SweepRows::new(&mut state.nodes);
     let reflected = SweepRows::new(&mut state.reflected);
     let task = |task: usize| {
         let mut added = 0.0f64;
@@ -740,12 +756,13 @@ fn sweep<const INFLOW: bool>(
             if link.node & LINE_START != 0 {
                 (p, unscattered) = (ZERO_ROW, inflow);
             }
-            let x = (link.node & !LINE_START) as usize;
-            let e = emit[x];
-            let row = links.reflecting[x] as usize;
+            let cell = (link.node & !LINE_START) as usize;
+            let x = cell * NODE_ROWS;
+            // SAFETY (here and below): the rows of this link's cell are its alone in this sweep
+            // (`SweepRows`), and no link writes an emission.
+            let e = unsafe { nodes.get(x + emitting) };
+            let row = links.reflecting[cell] as usize;
             let reflects = row != NO_LINK as usize;
-            // SAFETY (here and below): the rows of cell x are this link's alone in this sweep
-            // (`SweepRows`).
             let back = match reflects {
                 true => unsafe { reflected.take(waiting + row) },
                 false => ZERO_ROW,
@@ -769,8 +786,8 @@ fn sweep<const INFLOW: bool>(
                 }
             }
             unsafe {
-                fluence.add(x, &read);
-                next.add(x, &collided);
+                nodes.add(x + FLUENCE, &read);
+                nodes.add(x + next, &collided);
             }
             if reflects && link.reflect > 0.0 {
                 let mut r = ZERO_ROW;
@@ -810,18 +827,20 @@ fn transport_chunk(
     let n = links.sweeps[0].links.len();
     // The coefficients transported, what the first generation emits, and where it starts:
     // the environment enters at generation 0 and emits nothing; a known emission is generation 1.
-    let (c0, width, emit, start) = match drive {
-        Drive::Environment { c0, width } => (c0, width, vec![ZERO_ROW; n], 0),
+    let mut nodes = vec![ZERO_ROW; n * NODE_ROWS];
+    let (c0, width, start) = match drive {
+        Drive::Environment { c0, width } => (c0, width, 0),
         Drive::Emission(q) => {
-            let emit = q.iter().map(|&e| lanes(&[e])).collect();
-            (0, 1, emit, 1)
+            for (node, &e) in nodes.chunks_exact_mut(NODE_ROWS).zip(q) {
+                node[0] = lanes(&[e]);
+            }
+            (0, 1, 1)
         }
     };
     let d = links.sweeps.len();
     let mut state = State {
-        fluence: vec![ZERO_ROW; n],
-        emit,
-        next: vec![ZERO_ROW; n],
+        nodes,
+        emitting: 0,
         reflected: vec![ZERO_ROW; links.reflecting_cells * (d / 2)],
     };
     let mut stats = LatticeStats {
@@ -835,7 +854,11 @@ fn transport_chunk(
         // (`emit` starts at zero) and is not read out, since T_ri stands for it; only what thick
         // cells reflect of it is.
         let inflow = generation == 0;
-        state.next.iter_mut().for_each(|v| *v = ZERO_ROW);
+        let next = 1 - state.emitting;
+        state
+            .nodes
+            .chunks_exact_mut(NODE_ROWS)
+            .for_each(|node| node[next] = ZERO_ROW);
         let mut added = 0.0f64;
         for j in 0..d {
             added += match inflow {
@@ -846,7 +869,7 @@ fn transport_chunk(
                 false => sweep::<false>(links, j, &mut state, ZERO_ROW, albedo, c0),
             };
         }
-        std::mem::swap(&mut state.emit, &mut state.next);
+        state.emitting = next;
         stats.generations = generation;
         if generations.is_none() {
             stats.energy_multiple += added;
@@ -870,7 +893,16 @@ fn transport_chunk(
             }
         }
     }
-    (state.fluence, stats)
+    // The reflected light goes first: the fluence's copy is then no addition to the peak.
+    let State {
+        nodes, reflected, ..
+    } = state;
+    drop(reflected);
+    let fluence = nodes
+        .chunks_exact(NODE_ROWS)
+        .map(|node| node[FLUENCE])
+        .collect();
+    (fluence, stats)
 }
 
 /// Up to CHUNK coefficients as one row of lanes, the rest zero.
