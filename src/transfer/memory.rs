@@ -45,7 +45,8 @@ pub struct MemoryEstimate {
     pub layout: u64,
     /// T_ri and F_ms as kept in memory (f32).
     pub transfer: u64,
-    /// The larger of the single-scattering and lattice phases' working memory.
+    /// What the largest phase holds beyond the density, the layout and the final T_ri and F_ms
+    /// (the lattice's phases hold F_ms alone, so theirs counts one copy less).
     pub working: u64,
 }
 
@@ -66,19 +67,19 @@ impl MemoryEstimate {
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
         let one = n * c * 4;
-        // The phases beyond the density and the two copies of the coefficients (T_ri's point
-        // values, which become F_ms, and the fitted T_ri):
-        // - T_ri: the direction sets' SH weights and the far field's coarser density;
+        // What each phase holds beyond the density and the layout (`transfer::bake`):
+        // - T_ri's passes: the direction sets' SH weights and the far field's coarser density,
+        //   beside F_ms (the point values) and then T_ri too;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         let far = match far_field {
             true => (field_bytes as f64 * FAR_FIELD_SHARE) as u64,
             false => 0,
         };
-        let single = sets + far;
-        // - the fit: the mass matrix's rows, and a CG solve's vectors a thread;
-        let fit = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
-        // - the lattice: its links, with their places while they are built, and then one chunk's
-        //   transport beside them, the bricks released.
+        let single = 2 * one + sets + far;
+        // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
+        let fit = 2 * one + n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
+        // - the lattice, beside F_ms alone: its links, with their places while they are built,
+        //   and then the transport's state, the bricks released.
         let lattice = match settings.single_scatter {
             true => 0,
             false => {
@@ -90,15 +91,17 @@ impl MemoryEstimate {
                     true => 1,
                     false => threads as u64,
                 };
-                let transport = links + in_flight * transport_bytes(voxels, d, reflecting);
-                build.max(transport.saturating_sub(brick_bytes as u64))
+                let transport = (links + in_flight * transport_bytes(voxels, d, reflecting))
+                    .saturating_sub(brick_bytes as u64);
+                one + far + build.max(transport)
             }
         };
+        let peak = single.max(fit).max(lattice);
         MemoryEstimate {
             density: field_bytes as u64,
             layout: layout_bytes as u64,
             transfer: 2 * one,
-            working: single.max(fit).max(lattice) + PROCESS_BASELINE,
+            working: peak.saturating_sub(2 * one) + PROCESS_BASELINE,
         }
     }
 

@@ -94,70 +94,76 @@ pub fn bake(
 ) -> (Transfer, BakeStats) {
     let mut stats = BakeStats::default();
     let clock = std::time::Instant::now();
-    let density = &field.grid;
-    let layout = TransferLayout::build(density, settings.scale);
+    let layout = TransferLayout::build(&field.grid, settings.scale);
     stats.layout_seconds = clock.elapsed().as_secs_f64();
     stats.transfer_voxels = layout.len();
     stats.transfer_tiles = layout.tile_count();
 
     // T_ri twice: at the nodes (the point values the lattice's light is balanced against) and
-    // over the density around them (the footprint means the renderer's values are fitted to).
+    // over the density around them (the footprint means the renderer's values are fitted to),
+    // with the lattice between them. The unscattered light the fit takes away from a node's
+    // point value has collided sooner, and the share albedo of it is scattered: F_ms gets
+    // albedo × (point − fitted), so T_ri + F_ms at a node is what it is with point values, and at
+    // albedo 1 exactly so (the white furnace). The point values go into F_ms as albedo × point
+    // before the lattice adds to it, and the fitted T_ri comes off at the end, so no phase holds
+    // the point values beside both F_ms and T_ri.
+    let coeffs = settings.bands * settings.bands;
+    let n = layout.len();
     let clock = std::time::Instant::now();
-    let bar = progress.phase("single", 2 * layout.len() as u64);
-    let (point, mut t_ri) = {
-        // The coarser density lives through this phase only.
-        let (near, levels) = single::far_field(density, medium.sigma_t, settings.samples);
-        let mip = DensityMip::build(density, levels);
-        stats.far_field_bytes = mip.memory_bytes();
+    // The coarser density lives through the T_ri passes.
+    let (near, levels) = single::far_field(&field.grid, medium.sigma_t, settings.samples);
+    let mip = DensityMip::build(&field.grid, levels);
+    stats.far_field_bytes = mip.memory_bytes();
+    let chord_step = single::chord_step(&field.grid, medium.sigma_t);
+    let single = |field: &DensityField, origins, bar: &indicatif::ProgressBar| {
         let far = FarField { mip: &mip, near };
         let depth = OpticalDepth::new(field, medium.sigma_t, true).with_far_field(far);
-        let chord_step = single::chord_step(density, medium.sigma_t);
-        let single = |origins| {
-            let single = single::SingleSettings {
-                bands: settings.bands,
-                samples: settings.samples,
-                seed: settings.seed,
-                origins,
-                chord_step,
-            };
-            single::bake_single(density, &layout, &depth, single, &bar)
+        let single = single::SingleSettings {
+            bands: settings.bands,
+            samples: settings.samples,
+            seed: settings.seed,
+            origins,
+            chord_step,
         };
-        (
-            single(single::Origins::Node),
-            single(single::Origins::Footprint),
-        )
+        single::bake_single(&field.grid, &layout, &depth, single, bar)
     };
-    fit::least_squares(density, &layout, &mut t_ri, settings.bands * settings.bands);
-    bar.finish_and_clear();
-    stats.single_seconds = clock.elapsed().as_secs_f64();
-
-    let clock = std::time::Instant::now();
-    let f_ms = match settings.single_scatter {
-        true => vec![0.0; t_ri.len()],
+    let mut f_ms = match settings.single_scatter {
+        true => vec![0.0; n * coeffs],
         false => {
+            let bar = progress.phase("single", n as u64);
+            let mut point = single(field, single::Origins::Node, &bar);
+            bar.finish_and_clear();
+            stats.single_seconds = clock.elapsed().as_secs_f64();
+
+            let clock = std::time::Instant::now();
             progress.phase("lattice", 0);
-            let coeffs = settings.bands * settings.bands;
             let energy_single = point.iter().step_by(coeffs).map(|&t| t as f64).sum();
-            // The unscattered light the fit takes away from a node's point value has collided
-            // sooner; the share albedo of it is scattered. So T_ri + F_ms at a node is what it
-            // is with point values, and at albedo 1 exactly so: the white furnace holds as before.
-            // The point values become that correction in place, and the lattice adds to it.
-            let mut f_ms = point;
-            for (f, t) in f_ms.iter_mut().zip(&t_ri) {
-                *f = medium.albedo * (*f - t);
-            }
+            point.iter_mut().for_each(|p| *p *= medium.albedo);
             let lattice =
                 lattice::Lattice::build(field, &layout, settings.lattice, medium, settings.bands);
             // The transport samples no density: it runs without the bricks, built again once the
             // links are gone.
             field.release_bricks();
-            stats.lattice = Some(lattice.bake_multiple(settings.bands, energy_single, &mut f_ms));
+            stats.lattice = Some(lattice.bake_multiple(settings.bands, energy_single, &mut point));
             drop(lattice);
             field.restore_bricks();
-            f_ms
+            stats.lattice_seconds = clock.elapsed().as_secs_f64();
+            point
         }
     };
-    stats.lattice_seconds = clock.elapsed().as_secs_f64();
+
+    let clock = std::time::Instant::now();
+    let bar = progress.phase("fit", n as u64);
+    let mut t_ri = single(field, single::Origins::Footprint, &bar);
+    drop(mip);
+    fit::least_squares(&field.grid, &layout, &mut t_ri, coeffs);
+    bar.finish_and_clear();
+    if !settings.single_scatter {
+        for (f, t) in f_ms.iter_mut().zip(&t_ri) {
+            *f -= medium.albedo * t;
+        }
+    }
+    stats.single_seconds += clock.elapsed().as_secs_f64();
     let transfer = Transfer {
         layout,
         bands: settings.bands,
