@@ -174,7 +174,7 @@ section_render() {
     compare_peer cloud fixtures/cloud.vdb 0.3
     compare_peer cloud_large "$CL" 0.3
     # The half-size production cloud (issue 15: ratio <= 0.3, peak below vdb_render's) with
-    # SCALE_HALF=1 once `scale` has built it: its σt 1.6 bake takes several minutes and 4 GB.
+    # SCALE_HALF=1 once `scale` has built it: its σt 1.6 bake takes several minutes and 2 GB.
     if [ "${SCALE_HALF:-0}" = 1 ] && [ -f "$BENCH_IN/cloud_half.vdb" ]; then
         ensure_cache cloud_half_s1.6 "$BENCH_IN/cloud_half.vdb" --sigma-t 1.6
         compare_peer cloud_half "$BENCH_IN/cloud_half.vdb" 0.3
@@ -415,6 +415,14 @@ section_scale() {
             printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "render 1920x1080 ($b)" "$WALL" "$RSS_MB" - - - - "$LOAD"
         done
         echo "   $name bake new/old: $(ratio "${BW[new]}" "${BW[old]}"); new render against old: $("$VS" compare "$o/${name}_new.exr" "$o/${name}_old.exr" | head -1)"
+        # Issue 15's memory yardstick: the density as f32 and the final T_ri and F_ms as f32 (the
+        # default --bands 10: 100 coefficients a transfer voxel).
+        local data peak coeffs=100
+        data=$(awk -v a="$(info_field "$f" active_voxels)" -v t="$(j "scale_bake_new_$name" transfer_voxels)" \
+            -v c="$coeffs" 'BEGIN{ printf "%.0f", a * 4 + t * c * 4 * 2 }')
+        peak=$(j "scale_bake_new_$name" peak_memory_bytes)
+        local r; r=$(ratio "$peak" "$data")
+        echo "   $name bake peak / (density f32 + transfer f32, $(mib "$data") MiB): $r ($(verdict "$r" "<=" 1.5), target <= 1.5)"
         ls -l "$f" "$o/${name}_new.vtc" | awk '{ printf "   %s: %.1f MB\n", $NF, $5 / 1e6 }'
     done
 }
