@@ -6,17 +6,15 @@ use indicatif::HumanBytes as human;
 
 use super::{lattice, lattice::LatticeKind, single, BakeSettings, TransferLayout};
 use crate::error::{Error, Result};
-use crate::volume::mip::DensityMip;
 use crate::volume::DensityField;
 
 /// Resident memory of the process before a bake allocates anything (binary, thread stacks,
 /// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
 const PROCESS_BASELINE: u64 = 24 << 20;
 
-/// The far field's coarser density levels against the density and its accelerators, at most,
-/// for a plan too large to lay out (one that is laid out builds the levels and counts them):
-/// measured 0.21 (cloud_quarter), 0.32 (torus300), 0.35 (cloud_large), 0.39 (block300, tiles),
-/// 0.57 (helix600, a thin tube whose coarse blocks are mostly apron).
+/// The far field's coarser density levels against the density and its accelerators, at most:
+/// measured 0.32 (torus300), 0.35 (cloud_large), 0.39 (block300, tiles), 0.57 (helix600, a thin
+/// tube whose coarse blocks are mostly apron).
 const FAR_FIELD_SHARE: f64 = 0.6;
 
 /// The coarsest transfer resolution divisor K: beyond it a handful of transfer voxels span any
@@ -54,8 +52,8 @@ pub struct MemoryEstimate {
 
 impl MemoryEstimate {
     /// `field_bytes`: the density with its accelerators, of which `brick_bytes` are released for
-    /// the lattice's transport; `far`: the far field's coarser levels; `reflecting`: the share of
-    /// cells that reflect ([`lattice::DensityMeans::reflecting_share`]).
+    /// the lattice's transport; `reflecting`: the share of cells that reflect
+    /// ([`lattice::DensityMeans::reflecting_share`]).
     #[allow(clippy::too_many_arguments)]
     fn new(
         field_bytes: usize,
@@ -63,7 +61,7 @@ impl MemoryEstimate {
         layout_bytes: usize,
         voxels: usize,
         settings: &BakeSettings,
-        far: u64,
+        far_field: bool,
         reflecting: f64,
         threads: usize,
     ) -> MemoryEstimate {
@@ -73,6 +71,10 @@ impl MemoryEstimate {
         // - T_ri's passes: the direction sets' SH weights and the far field's coarser density,
         //   beside F_ms (the point values) and then T_ri too;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
+        let far = match far_field {
+            true => (field_bytes as f64 * FAR_FIELD_SHARE) as u64,
+            false => 0,
+        };
         let single = 2 * one + sets + far;
         // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
         let fit = 2 * one + n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
@@ -151,39 +153,31 @@ pub struct BakePlan {
     pub estimate: MemoryEstimate,
     /// The counts are estimated ([`MAX_LAID_OUT_VOXELS`]), not counted.
     pub estimated: bool,
-    /// Bytes of the coarser levels of the density T_ri's rays will read ([`single::far_field`];
-    /// 0: none).
-    pub far_bytes: u64,
+    /// T_ri's rays will read coarser levels of the density ([`single::far_field`]).
+    pub far_field: bool,
     /// σt, kept so a refusal can estimate other scales (their cells are thicker or thinner).
     pub sigma_t: f32,
 }
 
 impl BakePlan {
     pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
-        let levels = single::far_field(&field.grid, sigma_t, settings.samples).1;
+        let far = single::far_field(&field.grid, sigma_t, settings.samples).1 > 0;
         let reflecting =
             lattice::DensityMeans::new(&field.grid).reflecting_share(sigma_t, settings.scale);
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
             let layout = about.saturating_mul(LAYOUT_BYTES_PER_VOXEL);
-            let field_bytes = field.grid.memory_bytes() + field.accelerator_bytes();
-            let far = match levels {
-                0 => 0,
-                _ => (field_bytes as f64 * FAR_FIELD_SHARE) as u64,
-            };
             return BakePlan {
                 transfer_voxels: n,
                 transfer_tiles: n / 64,
                 estimate: estimate(field, layout as usize, n, settings, far, reflecting),
                 estimated: true,
-                far_bytes: far,
+                far_field: far,
                 sigma_t,
             };
         }
         let layout = TransferLayout::build(&field.grid, settings.scale);
-        // Built to be counted, as the layout is: their share of the density varies threefold.
-        let far = DensityMip::build(&field.grid, levels).memory_bytes() as u64;
         BakePlan {
             transfer_voxels: layout.len(),
             transfer_tiles: layout.tile_count(),
@@ -196,7 +190,7 @@ impl BakePlan {
                 reflecting,
             ),
             estimated: false,
-            far_bytes: far,
+            far_field: far,
             sigma_t,
         }
     }
@@ -243,7 +237,7 @@ impl BakePlan {
         let reflecting = |k| means.reflecting_share(self.sigma_t, k);
         let need = |settings: &BakeSettings, voxels: usize| {
             let r = reflecting(settings.scale);
-            estimate(field, layout_bytes, voxels, settings, self.far_bytes, r).total()
+            estimate(field, layout_bytes, voxels, settings, self.far_field, r).total()
         };
         // The finest coarser K that fits, from the estimated count at each K.
         let coarser = (s.scale + 1..=MAX_SCALE).find_map(|k| {
@@ -252,7 +246,7 @@ impl BakePlan {
             let bytes = (about.saturating_mul(LAYOUT_BYTES_PER_VOXEL)) as usize;
             let at_k = BakeSettings { scale: k, ..s };
             let total =
-                estimate(field, bytes, voxels, &at_k, self.far_bytes, reflecting(k)).total();
+                estimate(field, bytes, voxels, &at_k, self.far_field, reflecting(k)).total();
             (total <= limit).then_some((k, total))
         });
         let coarser = match coarser {
@@ -396,7 +390,7 @@ fn estimate(
     layout_bytes: usize,
     voxels: usize,
     settings: &BakeSettings,
-    far: u64,
+    far_field: bool,
     reflecting: f64,
 ) -> MemoryEstimate {
     MemoryEstimate::new(
@@ -405,7 +399,7 @@ fn estimate(
         layout_bytes,
         voxels,
         settings,
-        far,
+        far_field,
         reflecting,
         rayon::current_num_threads(),
     )
