@@ -6,16 +6,20 @@ use indicatif::HumanBytes as human;
 
 use super::{lattice, lattice::LatticeKind, single, BakeSettings, TransferLayout};
 use crate::error::{Error, Result};
+use crate::volume::grid::{TileLevel, LEAF_LOG2};
 use crate::volume::DensityField;
+use glam::IVec3;
 
 /// Resident memory of the process before a bake allocates anything (binary, thread stacks,
 /// allocator arenas), measured as ~20 MB; the estimate counts it so it compares with peak RSS.
 const PROCESS_BASELINE: u64 = 24 << 20;
 
-/// The far field's coarser density levels against the density and its accelerators, at most:
-/// measured 0.32 (torus300), 0.35 (cloud_large), 0.39 (block300, tiles), 0.57 (helix600, a thin
-/// tube whose coarse blocks are mostly apron).
-const FAR_FIELD_SHARE: f64 = 0.6;
+/// What a block of a coarser density level costs against a block of the density itself (leaf or
+/// 8³ tile, with its share of the accelerators): more of a coarse level is apron. Measured as the
+/// levels' bytes over (the density's bytes per block × the levels' blocks): 1.28 (cloud_large
+/// σt 0.2, torus fixture), 1.31 (cloud_quarter), 1.45 (torus300, cloud fixture), 1.61 (cloud_large),
+/// 1.21 (helix600); block300, whose 128³ tiles turn into leaves at their rims, 2.6.
+const FAR_BLOCK_COST: f64 = 1.5;
 
 /// The coarsest transfer resolution divisor K: beyond it a handful of transfer voxels span any
 /// real volume (`--scale` refuses more; a refusal suggests no more).
@@ -52,8 +56,8 @@ pub struct MemoryEstimate {
 
 impl MemoryEstimate {
     /// `field_bytes`: the density with its accelerators, of which `brick_bytes` are released for
-    /// the lattice's transport; `reflecting`: the share of cells that reflect
-    /// ([`lattice::DensityMeans::reflecting_share`]).
+    /// the lattice's transport; `far`: the far field's coarser levels ([`far_field_bytes`]);
+    /// `reflecting`: the share of cells that reflect ([`lattice::DensityMeans::reflecting_share`]).
     #[allow(clippy::too_many_arguments)]
     fn new(
         field_bytes: usize,
@@ -61,7 +65,7 @@ impl MemoryEstimate {
         layout_bytes: usize,
         voxels: usize,
         settings: &BakeSettings,
-        far_field: bool,
+        far: u64,
         reflecting: f64,
         threads: usize,
     ) -> MemoryEstimate {
@@ -71,10 +75,6 @@ impl MemoryEstimate {
         // - T_ri's passes: the direction sets' SH weights and the far field's coarser density,
         //   beside F_ms (the point values) and then T_ri too;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
-        let far = match far_field {
-            true => (field_bytes as f64 * FAR_FIELD_SHARE) as u64,
-            false => 0,
-        };
         let single = 2 * one + sets + far;
         // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
         let fit = 2 * one + n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
@@ -153,15 +153,16 @@ pub struct BakePlan {
     pub estimate: MemoryEstimate,
     /// The counts are estimated ([`MAX_LAID_OUT_VOXELS`]), not counted.
     pub estimated: bool,
-    /// T_ri's rays will read coarser levels of the density ([`single::far_field`]).
-    pub far_field: bool,
+    /// Bytes of the coarser levels of the density T_ri's rays will read ([`far_field_bytes`]).
+    pub far_bytes: u64,
     /// σt, kept so a refusal can estimate other scales (their cells are thicker or thinner).
     pub sigma_t: f32,
 }
 
 impl BakePlan {
     pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
-        let far = single::far_field(&field.grid, sigma_t, settings.samples).1 > 0;
+        let levels = single::far_field(&field.grid, sigma_t, settings.samples).1;
+        let far = far_field_bytes(field, levels);
         let reflecting =
             lattice::DensityMeans::new(&field.grid).reflecting_share(sigma_t, settings.scale);
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
@@ -173,7 +174,7 @@ impl BakePlan {
                 transfer_tiles: n / 64,
                 estimate: estimate(field, layout as usize, n, settings, far, reflecting),
                 estimated: true,
-                far_field: far,
+                far_bytes: far,
                 sigma_t,
             };
         }
@@ -190,7 +191,7 @@ impl BakePlan {
                 reflecting,
             ),
             estimated: false,
-            far_field: far,
+            far_bytes: far,
             sigma_t,
         }
     }
@@ -237,7 +238,7 @@ impl BakePlan {
         let reflecting = |k| means.reflecting_share(self.sigma_t, k);
         let need = |settings: &BakeSettings, voxels: usize| {
             let r = reflecting(settings.scale);
-            estimate(field, layout_bytes, voxels, settings, self.far_field, r).total()
+            estimate(field, layout_bytes, voxels, settings, self.far_bytes, r).total()
         };
         // The finest coarser K that fits, from the estimated count at each K.
         let coarser = (s.scale + 1..=MAX_SCALE).find_map(|k| {
@@ -246,7 +247,7 @@ impl BakePlan {
             let bytes = (about.saturating_mul(LAYOUT_BYTES_PER_VOXEL)) as usize;
             let at_k = BakeSettings { scale: k, ..s };
             let total =
-                estimate(field, bytes, voxels, &at_k, self.far_field, reflecting(k)).total();
+                estimate(field, bytes, voxels, &at_k, self.far_bytes, reflecting(k)).total();
             (total <= limit).then_some((k, total))
         });
         let coarser = match coarser {
@@ -385,12 +386,43 @@ impl RenderEstimate {
     }
 }
 
+/// Bytes of `levels` coarser levels of `field`'s density ([`crate::volume::mip::DensityMip`]),
+/// estimated without building them: a level holds a block wherever the level below has a leaf or
+/// an 8³ tile in it, and each costs [`FAR_BLOCK_COST`] times what the density costs a block.
+/// (Their share of the density runs from 0.21 to 0.57 on the bench inputs; building them to count
+/// them left their freed memory in the allocator's heap under the bake.)
+fn far_field_bytes(field: &DensityField, levels: usize) -> u64 {
+    let grid = &field.grid;
+    let mut blocks: Vec<IVec3> = grid
+        .leaves()
+        .iter()
+        .map(|leaf| leaf.origin >> LEAF_LOG2 as i32)
+        .chain(
+            grid.tiles(TileLevel::Block)
+                .map(|(o, _)| o >> LEAF_LOG2 as i32),
+        )
+        .collect();
+    let fine = blocks.len();
+    if fine == 0 {
+        return 0;
+    }
+    let mut coarse = 0;
+    for _ in 0..levels {
+        blocks.iter_mut().for_each(|b| *b = *b >> 1);
+        blocks.sort_unstable_by_key(|b| (b.x, b.y, b.z));
+        blocks.dedup();
+        coarse += blocks.len();
+    }
+    let per_block = (grid.memory_bytes() + field.accelerator_bytes()) as f64 / fine as f64;
+    (FAR_BLOCK_COST * per_block * coarse as f64) as u64
+}
+
 fn estimate(
     field: &DensityField,
     layout_bytes: usize,
     voxels: usize,
     settings: &BakeSettings,
-    far_field: bool,
+    far: u64,
     reflecting: f64,
 ) -> MemoryEstimate {
     MemoryEstimate::new(
@@ -399,7 +431,7 @@ fn estimate(
         layout_bytes,
         voxels,
         settings,
-        far_field,
+        far,
         reflecting,
         rayon::current_num_threads(),
     )
@@ -408,6 +440,22 @@ fn estimate(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::volume::mip::DensityMip;
+
+    #[test]
+    fn the_far_field_estimate_follows_the_levels_built() {
+        // The fixtures' three levels, counted by their blocks against built: measured 1.03 (cloud)
+        // and 1.17 (torus) of the built bytes.
+        for file in ["cloud.vdb", "torus.vdb"] {
+            let field = DensityField::new(crate::transfer::tests::load(file));
+            let built = DensityMip::build(&field.grid, 3).memory_bytes() as f64;
+            let estimated = far_field_bytes(&field, 3) as f64;
+            let ratio = estimated / built;
+            assert!((0.9..1.3).contains(&ratio), "{file}: {ratio}");
+        }
+        let field = DensityField::new(crate::transfer::tests::load("cloud.vdb"));
+        assert_eq!(far_field_bytes(&field, 0), 0);
+    }
 
     #[test]
     fn a_streamed_exr_holds_bands_not_the_frame() {
