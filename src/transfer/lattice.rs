@@ -1006,7 +1006,7 @@ pub fn solve_emission(
     medium: Medium,
     emission: &[f32],
 ) -> Vec<f32> {
-    let links = build_links(field, layout, medium, Directions::new(kind), 1);
+    let lattice = Lattice::build(field, layout, kind, medium, 1);
     // The energy criterion weighs what remains against the total: the first scattering stands
     // for the "single" part here.
     let first = Source {
@@ -1014,7 +1014,7 @@ pub fn solve_emission(
         bands: 1,
         medium,
     };
-    let (fluence, _) = transport_chunk(&links, &first, Drive::Emission(emission), None);
+    let (fluence, _) = transport_chunk(&lattice.links, &first, Drive::Emission(emission), None);
     fluence.iter().map(|row| row[0].x).collect()
 }
 
