@@ -330,6 +330,51 @@ fn active_values(leaf: &Leaf) -> impl Iterator<Item = f32> + '_ {
         .map(|i| leaf.values[i])
 }
 
+/// Active voxels in a leaf's mask.
+fn active_count(mask: &[u64; 8]) -> usize {
+    mask.iter().map(|w| w.count_ones() as usize).sum()
+}
+
+/// Leaves built from their active values as those stream in, in leaf order.
+struct LeafFill {
+    /// The leaves still to build: origin, active mask, count of active values.
+    leaves: std::iter::Peekable<std::vec::IntoIter<(IVec3, [u64; 8], usize)>>,
+    /// The next leaf's values so far.
+    pending: Vec<f32>,
+}
+
+impl LeafFill {
+    /// Takes the next `values`, adding each leaf to `grid` once its values are all in (a leaf
+    /// with no active value at once).
+    fn take(
+        &mut self,
+        mut values: &[f32],
+        grid: &mut SparseGrid,
+    ) -> std::result::Result<(), String> {
+        loop {
+            while let Some((origin, mask, _)) =
+                self.leaves.next_if(|(_, _, n)| *n == self.pending.len())
+            {
+                let mut array = [grid.background; LEAF_VOXELS];
+                let slots = (0..LEAF_VOXELS).filter(|&i| Leaf::is_set(&mask, i));
+                for (slot, v) in slots.zip(self.pending.drain(..)) {
+                    array[slot] = v;
+                }
+                grid.insert_leaf(origin, mask, array);
+            }
+            if values.is_empty() {
+                return Ok(());
+            }
+            let Some((_, _, n)) = self.leaves.peek() else {
+                return Err("the density holds more values than its leaves".into());
+            };
+            let (now, later) = values.split_at((n - self.pending.len()).min(values.len()));
+            self.pending.extend_from_slice(now);
+            values = later;
+        }
+    }
+}
+
 /// The cache body after the header, read section by section from a reader that has `left`
 /// bytes of it before the checksum: each section is decompressed as it streams in, so a read
 /// holds the decoded data and a buffer, never the file or a compressed section.
@@ -559,36 +604,37 @@ fn decode(header: Header, mut body: Body<impl BufRead>) -> std::result::Result<C
     };
     let mut density = SparseGrid::new(transform, f32::from_le_bytes(body.fixed()?));
     let leaves = body.section(|r| records(r, header.leaves, LEAF_BYTES))?;
-    let masks: Vec<(IVec3, [u64; 8])> = leaves
+    // Each leaf's origin, active mask and count of active values.
+    let masks: Vec<(IVec3, [u64; 8], usize)> = leaves
         .chunks_exact(LEAF_BYTES)
         .map(|b| {
             let origin = ivecs(&b[..12]).next().unwrap_or(IVec3::ZERO);
             let mask = std::array::from_fn(|i| {
                 u64::from_le_bytes(std::array::from_fn(|k| b[12 + 8 * i + k]))
             });
-            (origin, mask)
+            (origin, mask, active_count(&mask))
         })
         .collect();
-    let active: usize = masks
-        .iter()
-        .map(|(_, m)| m.iter().map(|w| w.count_ones() as usize).sum::<usize>())
-        .sum();
-    let values = body.section(|r| match header.density {
-        Precision::F32 => r.values(active, f32::from_le_bytes),
-        Precision::F16 => r.values(active, |b| half::f16::from_le_bytes(b).to_f32()),
-        Precision::Q8 => Err("the header's density precision is invalid".into()),
-    })?;
-    let mut next = values.into_iter();
+    drop(leaves);
+    let active: usize = masks.iter().map(|(_, _, n)| n).sum();
+    // The values go straight into their leaves as they decode: a big cloud's values never sit in
+    // memory twice.
     density.reserve_leaves(masks.len());
-    for (origin, mask) in masks {
-        let mut array = [density.background; LEAF_VOXELS];
-        for (i, v) in array.iter_mut().enumerate() {
-            if Leaf::is_set(&mask, i) {
-                *v = next.next().unwrap_or(density.background);
+    let mut fill = LeafFill {
+        leaves: masks.into_iter().peekable(),
+        pending: Vec::with_capacity(LEAF_VOXELS),
+    };
+    fill.take(&[], &mut density)?;
+    body.section(|r| {
+        let mut take = |chunk: &mut Vec<f32>| fill.take(chunk, &mut density);
+        match header.density {
+            Precision::F32 => r.each_chunk(active, f32::from_le_bytes, &mut take),
+            Precision::F16 => {
+                r.each_chunk(active, |b| half::f16::from_le_bytes(b).to_f32(), &mut take)
             }
+            Precision::Q8 => Err("the header's density precision is invalid".into()),
         }
-        density.insert_leaf(origin, mask, array);
-    }
+    })?;
     let tiles = header.tiles.iter().try_fold(0u64, |a, t| a.checked_add(*t));
     let tiles = body.section(|r| records(r, tiles.unwrap_or(u64::MAX), TILE_BYTES))?;
     let mut records_left = tiles.chunks_exact(TILE_BYTES);

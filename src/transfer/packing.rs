@@ -142,9 +142,30 @@ impl<'a> SectionReader<'a> {
         decode: impl Fn([u8; W]) -> T,
     ) -> Parse<Vec<T>> {
         let mut out: Vec<T> = Vec::new();
+        self.each_chunk(n, decode, |chunk| {
+            let m = chunk.len();
+            if out.capacity() - out.len() < m {
+                out.reserve_exact((n - out.len()).min(out.len().max(m)));
+            }
+            out.append(chunk);
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    /// `n` values as [`SectionReader::values`] decodes them, handed to `take` a chunk at a time
+    /// as they arrive, so a caller can put each where it belongs without holding them all.
+    pub fn each_chunk<const W: usize, T>(
+        &mut self,
+        n: usize,
+        decode: impl Fn([u8; W]) -> T,
+        mut take: impl FnMut(&mut Vec<T>) -> Parse<()>,
+    ) -> Parse<()> {
         let mut planes = vec![0u8; n.min(CHUNK_VALUES) * W];
-        while out.len() < n {
-            let m = (n - out.len()).min(CHUNK_VALUES);
+        let mut chunk = Vec::with_capacity(n.min(CHUNK_VALUES));
+        let mut done = 0;
+        while done < n {
+            let m = (n - done).min(CHUNK_VALUES);
             let planes = &mut planes[..m * W];
             self.decoder
                 .read_exact(planes)
@@ -154,14 +175,14 @@ impl<'a> SectionReader<'a> {
                     }
                     _ => format!("a compressed section is damaged: {e}"),
                 })?;
-            if out.capacity() - out.len() < m {
-                out.reserve_exact((n - out.len()).min(out.len().max(m)));
-            }
             // One slice per byte plane, each m long, so the gather below needs no bounds checks.
             let planes: [&[u8]; W] = std::array::from_fn(|b| &planes[b * m..(b + 1) * m]);
-            out.extend((0..m).map(|i| decode(std::array::from_fn(|b| planes[b][i]))));
+            chunk.clear();
+            chunk.extend((0..m).map(|i| decode(std::array::from_fn(|b| planes[b][i]))));
+            take(&mut chunk)?;
+            done += m;
         }
-        Ok(out)
+        Ok(())
     }
 
     /// Checks that the section holds nothing more.
