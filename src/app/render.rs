@@ -392,7 +392,6 @@ impl Job<'_> {
                     Err(none) => none,
                 }),
                 "active_voxels": scene.field.grid.active_voxels(),
-                "brick_bytes": scene.field.accelerator_bytes(),
             });
             let view = View {
                 camera: &camera,
@@ -452,6 +451,10 @@ impl Job<'_> {
                 }
             }
             view.bar.finish_and_clear();
+            stats["brick_bytes"] = json!(match scene.field.has_bricks() {
+                true => scene.field.brick_bytes(),
+                false => 0,
+            });
             stats["write_seconds"] = json!(writing.saturating_sub(rendering).as_secs_f64());
             if global.stats {
                 stats["peak_memory_bytes"] = json!(peak_memory());
@@ -538,6 +541,7 @@ fn transfer(
     let from_cache = stats["bake"].is_null();
     let estimate = RenderEstimate::new(
         &scene.field,
+        scene.render_bricks(view.camera, view.spp, view.lighting),
         scene.transfer.as_ref().map_or(0, |t| t.layout.len()),
         scene.transfer.as_ref().map_or(0, |t| t.coefficient_bytes()),
         scene.light_plan(view.lighting),
@@ -574,6 +578,7 @@ fn transfer(
         json!(stats["env_seconds"].as_f64().unwrap_or(0.0) + report.project.as_secs_f64());
     stats["relight_seconds"] = json!(report.relight.as_secs_f64());
     stats["suns"] = json!(view.lighting.suns.len());
+    stats["brick_seconds"] = json!(suns.brick_seconds);
     stats["sun_shadow_seconds"] = json!(suns.shadow_seconds);
     stats["sun_lattice_seconds"] = json!(suns.lattice_seconds);
     stats["sun_bytes"] = json!(suns.bytes);

@@ -134,7 +134,7 @@ impl TransferShape {
     /// volume at a time beside the result), without building it.
     pub fn estimate_bytes(field: &DensityField, transfer: &Transfer) -> u64 {
         crate::volume::shadow::ShadowVolume::estimate_bytes(&field.grid)
-            + (field.grid.memory_bytes() + field.accelerator_bytes()) as u64
+            + (field.grid.memory_bytes() + field.brick_bytes()) as u64
             + transfer.layout.len() as u64 * 4
     }
 }

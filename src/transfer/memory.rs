@@ -317,10 +317,13 @@ pub struct RenderEstimate {
 }
 
 impl RenderEstimate {
-    /// `coefficient_bytes`: T_ri and F_ms as held; `light`: [`crate::scene::Scene::light_plan`];
-    /// `solve`: [`sun_solve_bytes`] when a new sun will be solved; `image`: [`image_bytes`].
+    /// `bricks`: whether the render holds the density's bricks
+    /// ([`crate::scene::Scene::render_bricks`]); `coefficient_bytes`: T_ri and F_ms as held;
+    /// `light`: [`crate::scene::Scene::light_plan`]; `solve`: [`sun_solve_bytes`] when a new sun
+    /// will be solved; `image`: [`image_bytes`].
     pub fn new(
         field: &DensityField,
+        bricks: bool,
         transfer_voxels: usize,
         coefficient_bytes: usize,
         light: u64,
@@ -329,7 +332,8 @@ impl RenderEstimate {
     ) -> RenderEstimate {
         let march = transfer_voxels as u64 * RENDER_BYTES_PER_TRANSFER_VOXEL;
         RenderEstimate {
-            volume: (field.grid.memory_bytes() + field.accelerator_bytes()) as u64,
+            volume: (field.grid.memory_bytes() + if bricks { field.brick_bytes() } else { 0 })
+                as u64,
             transfer: coefficient_bytes as u64 + march,
             march,
             light,
@@ -413,7 +417,7 @@ fn far_field_bytes(field: &DensityField, levels: usize) -> u64 {
         blocks.dedup();
         coarse += blocks.len();
     }
-    let per_block = (grid.memory_bytes() + field.accelerator_bytes()) as f64 / fine as f64;
+    let per_block = (grid.memory_bytes() + field.brick_bytes()) as f64 / fine as f64;
     (FAR_BLOCK_COST * per_block * coarse as f64) as u64
 }
 
@@ -426,8 +430,8 @@ fn estimate(
     reflecting: f64,
 ) -> MemoryEstimate {
     MemoryEstimate::new(
-        field.grid.memory_bytes() + field.accelerator_bytes(),
-        field.accelerator_bytes(),
+        field.grid.memory_bytes() + field.brick_bytes(),
+        field.brick_bytes(),
         layout_bytes,
         voxels,
         settings,

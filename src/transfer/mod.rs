@@ -85,7 +85,8 @@ pub struct BakeStats {
 }
 
 /// Bakes the transfer of `field`: layout, T_ri, then (unless single-scatter) F_ms. The field's
-/// bricks are released while the lattice transports light, and built again after.
+/// bricks are built first (unless they are), released while the lattice transports light, and
+/// built again after.
 pub fn bake(
     field: &mut DensityField,
     medium: Medium,
@@ -93,6 +94,8 @@ pub fn bake(
     progress: &dyn crate::io::progress::Phases,
 ) -> (Transfer, BakeStats) {
     let mut stats = BakeStats::default();
+    // T_ri samples each leaf's density many thousands of times.
+    field.build_bricks();
     let clock = std::time::Instant::now();
     let layout = TransferLayout::build(&field.grid, settings.scale);
     stats.layout_seconds = clock.elapsed().as_secs_f64();
@@ -146,7 +149,7 @@ pub fn bake(
             field.release_bricks();
             stats.lattice = Some(lattice.bake_multiple(settings.bands, energy_single, &mut point));
             drop(lattice);
-            field.restore_bricks();
+            field.build_bricks();
             stats.lattice_seconds = clock.elapsed().as_secs_f64();
             point
         }

@@ -77,11 +77,7 @@ impl Bricks {
         // Which entries are uniform is decided in parallel; the bricks are then numbered in key
         // order (deterministic) and filled in parallel in place, so the build holds the bricks
         // once, never a copy of them.
-        let keys = keys(grid);
-        let uniform: Vec<Option<f32>> = keys
-            .par_iter()
-            .map(|&key| uniform(&window(grid, key)))
-            .collect();
+        let (keys, uniform) = plan(grid);
         let mut entries = HashMap::with_capacity(keys.len());
         let mut brick_keys = Vec::new();
         for (&key, u) in keys.iter().zip(&uniform) {
@@ -125,6 +121,16 @@ impl Bricks {
     pub fn memory_bytes(&self) -> usize {
         bytes(self.values.capacity(), self.entries.capacity())
     }
+
+    /// What [`Bricks::build`] will hold for `grid`, from its plan alone (no brick filled).
+    pub fn estimate_bytes(grid: &SparseGrid) -> usize {
+        let (keys, uniform) = plan(grid);
+        let entries: HashMap<IVec3, Entry> = HashMap::with_capacity(keys.len());
+        bytes(
+            uniform.iter().filter(|u| u.is_none()).count(),
+            entries.capacity(),
+        )
+    }
 }
 
 /// The blocks that get an entry: every block within one of a leaf or a block tile, sorted
@@ -154,6 +160,17 @@ fn keys(grid: &SparseGrid) -> Vec<IVec3> {
     keys.par_sort_unstable_by_key(|k| (k.x, k.y, k.z));
     keys.dedup();
     keys
+}
+
+/// The blocks that get an entry ([`keys`]) and, for each, its value when it is uniform (`None`:
+/// it needs a brick).
+fn plan(grid: &SparseGrid) -> (Vec<IVec3>, Vec<Option<f32>>) {
+    let keys = keys(grid);
+    let uniform = keys
+        .par_iter()
+        .map(|&key| uniform(&window(grid, key)))
+        .collect();
+    (keys, uniform)
 }
 
 /// The eight blocks a brick at `key` reads: `key + {0,1}³`, ordered as [`corner`].

@@ -50,7 +50,7 @@ impl DensityMip {
     pub fn memory_bytes(&self) -> usize {
         self.levels
             .iter()
-            .map(|f| f.grid.memory_bytes() + f.accelerator_bytes())
+            .map(|f| f.grid.memory_bytes() + f.brick_bytes())
             .sum()
     }
 }
