@@ -17,7 +17,7 @@ use crate::render::sunlight::SunLight;
 use crate::render::{
     self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows, TransferShape,
 };
-use crate::transfer::cache::{self, Header, Origin, Source};
+use crate::transfer::cache::{self, Cache, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
 use crate::transfer::packing::Precision;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer};
@@ -93,9 +93,29 @@ impl Scene {
     /// a renamed file still works), or a VDB file whose density grid `config.grid` chooses, with
     /// the medium of `config`.
     pub fn open(path: &Path, config: &BakeConfig) -> Result<Scene> {
+        Scene::open_lit(path, config, None)
+    }
+
+    /// Opens `path` as [`Scene::open`] does, to render it under `lightings` only: a cache's
+    /// coefficients are relit under each as they are read ([`cache::read_relit`]) and never held.
+    pub fn open_for(path: &Path, config: &BakeConfig, lightings: &[Lighting]) -> Result<Scene> {
+        Scene::open_lit(path, config, Some(lightings))
+    }
+
+    fn open_lit(path: &Path, config: &BakeConfig, lightings: Option<&[Lighting]>) -> Result<Scene> {
         let clock = Instant::now();
         let (grid, medium, transfer, origin) = if cache::is_cache(path)? {
-            let c = cache::read(path)?;
+            let relit = |lightings: &[Lighting]| -> Result<Cache> {
+                let bands = cache::read_header(path)?
+                    .and_then(|h| h.settings())
+                    .map_or(0, |s| s.bands);
+                let envs: Vec<_> = lightings.iter().map(|l| l.sh_coefficients(bands)).collect();
+                cache::read_relit(path, &envs)
+            };
+            let c = match lightings {
+                Some(lightings) => relit(lightings)?,
+                None => cache::read(path)?,
+            };
             let medium = c.transfer.medium;
             (c.density, medium, Some(c.transfer), None)
         } else {
@@ -244,7 +264,7 @@ impl Scene {
             settings,
             progress,
             consume,
-        );
+        )?;
         Ok((out, stats, times, report))
     }
 

@@ -364,7 +364,7 @@ impl Job<'_> {
             }
         }
         phase("read");
-        let mut scene = Scene::open(input, self.config)?;
+        let mut scene = Scene::open_for(input, self.config, self.lightings)?;
         let bounds = self.framing.or_else(|| framing_bounds(&scene.field.grid));
         let spec = match known {
             Some(spec) => spec,

@@ -6,7 +6,7 @@ pub(crate) mod camera;
 pub(crate) mod film;
 mod march;
 pub mod motion;
-mod relight;
+pub mod relight;
 pub mod sunlight;
 
 use std::time::{Duration, Instant};
@@ -152,7 +152,7 @@ pub fn render_volume<R>(
     settings: &MarchSettings,
     progress: &indicatif::ProgressBar,
     consume: impl FnOnce(&mut Rows) -> R,
-) -> (R, MarchStats, RenderReport) {
+) -> Result<(R, MarchStats, RenderReport)> {
     let Light {
         lighting,
         suns,
@@ -162,7 +162,7 @@ pub fn render_volume<R>(
     let env_coeffs = lighting.sh_coefficients(transfer.bands);
     let project = t.elapsed();
     let t = Instant::now();
-    let mut radiance = relight(transfer, &env_coeffs);
+    let mut radiance = relight(transfer, &env_coeffs)?;
     // Each sun's multiple scattering joins the nodes' indirect light (p·F·E); its single
     // scattering is marched from its shadow volume.
     for (light, sun) in suns.iter().zip(&lighting.suns) {
@@ -195,7 +195,7 @@ pub fn render_volume<R>(
         relight: relight_time,
         march: march_time,
     };
-    (out, stats, report)
+    Ok((out, stats, report))
 }
 
 impl Frame {
@@ -317,8 +317,10 @@ mod tests {
                 sigma_t: 0.05,
                 albedo: 1.0,
             },
-            t_ri: dc(0.5 * sqrt_4pi),
-            f_ms: dc(0.5 * sqrt_4pi),
+            light: crate::transfer::TransferLight::Coefficients {
+                t_ri: dc(0.5 * sqrt_4pi),
+                f_ms: dc(0.5 * sqrt_4pi),
+            },
             lattice: None,
         };
         let c = [0.5f32, 1.0, 2.0];
@@ -347,7 +349,8 @@ mod tests {
             &MarchSettings::default(),
             &indicatif::ProgressBar::hidden(),
             |rows| rows(0..16),
-        );
+        )
+        .unwrap();
         assert_eq!(stats.rays, 24 * 16);
         for px in &frame.rgba {
             for ch in 0..3 {

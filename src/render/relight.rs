@@ -5,8 +5,9 @@
 
 use rayon::prelude::*;
 
+use crate::error::{Error, Result};
 use crate::transfer::coefficients::MAX_COEFFS;
-use crate::transfer::{Coefficients, Transfer, PHASE};
+use crate::transfer::{Coefficients, Transfer, TransferLight, PHASE};
 
 /// Slots per rayon task: large enough that scheduling costs nothing next to the dot products.
 const SLOTS_PER_TASK: usize = 1024;
@@ -21,8 +22,15 @@ pub struct Radiance {
     pub indirect: Vec<[f32; 3]>,
 }
 
+impl Radiance {
+    pub fn memory_bytes(&self) -> usize {
+        (self.direct.capacity() + self.indirect.capacity()) * std::mem::size_of::<[f32; 3]>()
+    }
+}
+
 /// Ls per slot from `env_coeffs` — the environment's RGB SH coefficients (index i = l(l+1)+m,
-/// already windowed and rotated).
+/// already windowed and rotated). A transfer relit as it was read gives the radiance of the map
+/// it was read for; another map is an error, as there are no coefficients to relight.
 ///
 /// The sum runs over the coefficients both sides have: with orthonormal SH a missing coefficient is
 /// zero, so a shorter side simply truncates the product — no mismatch error is needed.
@@ -38,18 +46,67 @@ pub struct Radiance {
 /// sum stay non-negative; light is only added where the truth is ~0.
 ///
 /// Each slot's sums run in a fixed order (eight interleaved partial sums, then the tail) inside one
-/// task, so the output is bit-identical for any thread count.
-pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
+/// task, so the output is bit-identical for any thread count, and for a transfer relit as read.
+pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Result<Radiance> {
+    let (t_ri, f_ms) = match &transfer.light {
+        TransferLight::Coefficients { t_ri, f_ms } => (t_ri, f_ms),
+        TransferLight::Relit(maps) => {
+            return maps
+                .iter()
+                .find(|(env, _)| env == env_coeffs)
+                .map(|(_, radiance)| radiance.clone())
+                .ok_or_else(|| {
+                    Error::Runtime(
+                        "the transfer was relit for other maps as it was read: open it again"
+                            .into(),
+                    )
+                })
+        }
+    };
     let stride = transfer.coeffs();
-    let n = stride.min(env_coeffs.len());
-    // Channel planes, so the dot products run as LANES independent sums the compiler vectorises.
-    let planes: [Vec<f32>; 3] =
-        std::array::from_fn(|c| env_coeffs[..n].iter().map(|e| e[c]).collect());
-    let ls = |coeffs: &[f32]| -> [f32; 3] {
-        let t = &coeffs[..n];
+    let env = EnvPlanes::new(env_coeffs, stride);
+    // Each voxel's coefficients decode into a buffer on the stack (they are held as the cache
+    // stores them), then one dot product per channel.
+    let per_slot = |all: &Coefficients| -> Vec<[f32; 3]> {
+        if stride == 0 {
+            return vec![[0.0; 3]; transfer.layout.len()];
+        }
+        (0..transfer.layout.len())
+            .into_par_iter()
+            .with_min_len(SLOTS_PER_TASK)
+            .map(|slot| {
+                let mut voxel = [0.0f32; MAX_COEFFS];
+                all.voxel(slot, &mut voxel[..stride]);
+                env.ls(&voxel[..stride])
+            })
+            .collect()
+    };
+    let (direct, indirect) = rayon::join(|| per_slot(t_ri), || per_slot(f_ms));
+    Ok(clamped(direct, indirect))
+}
+
+/// One environment's SH coefficients as channel planes, cut to what a transfer of `stride`
+/// coefficients per voxel has, so the dot products run as LANES independent sums the compiler
+/// vectorises.
+struct EnvPlanes {
+    planes: [Vec<f32>; 3],
+}
+
+impl EnvPlanes {
+    fn new(env_coeffs: &[[f32; 3]], stride: usize) -> EnvPlanes {
+        let n = stride.min(env_coeffs.len());
+        EnvPlanes {
+            planes: std::array::from_fn(|c| env_coeffs[..n].iter().map(|e| e[c]).collect()),
+        }
+    }
+
+    /// (1/4π) Σᵢ Tᵢ Eᵢ per channel for one voxel's coefficients `t`.
+    fn ls(&self, t: &[f32]) -> [f32; 3] {
+        let n = self.planes[0].len();
+        let t = &t[..n];
         let split = n - n % LANES;
         std::array::from_fn(|c| {
-            let e = &planes[c];
+            let e = &self.planes[c];
             let mut lanes = [0.0f32; LANES];
             for (tc, ec) in t[..split]
                 .chunks_exact(LANES)
@@ -63,25 +120,12 @@ pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
             let sum = lanes.iter().sum::<f32>() + tail;
             sum * PHASE
         })
-    };
-    // Each voxel's coefficients decode into a buffer on the stack (they are held as the cache
-    // stores them), then one dot product per channel.
-    let per_slot = |all: &Coefficients| -> Vec<[f32; 3]> {
-        if stride == 0 {
-            return vec![[0.0; 3]; transfer.layout.len()];
-        }
-        (0..transfer.layout.len())
-            .into_par_iter()
-            .with_min_len(SLOTS_PER_TASK)
-            .map(|slot| {
-                let mut voxel = [0.0f32; MAX_COEFFS];
-                all.voxel(slot, &mut voxel[..stride]);
-                ls(&voxel[..stride])
-            })
-            .collect()
-    };
-    let (mut direct, mut indirect) =
-        rayon::join(|| per_slot(&transfer.t_ri), || per_slot(&transfer.f_ms));
+    }
+}
+
+/// The two parts with their sum clamped to 0 and a negative part taken from the other
+/// ([`relight`]).
+fn clamped(mut direct: Vec<[f32; 3]>, mut indirect: Vec<[f32; 3]>) -> Radiance {
     for (d, i) in direct.iter_mut().zip(indirect.iter_mut()) {
         for c in 0..3 {
             let sum = (d[c] + i[c]).max(0.0);
@@ -90,6 +134,53 @@ pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Radiance {
         }
     }
     Radiance { direct, indirect }
+}
+
+/// Relights a transfer's coefficients under several maps as they stream in, a batch of voxels at
+/// a time (T_ri's, then F_ms's), so a render from a cache never holds the coefficients: the same
+/// radiance as [`relight`], bit for bit.
+pub struct StreamRelight {
+    envs: Vec<(Vec<[f32; 3]>, EnvPlanes)>,
+    stride: usize,
+    /// Per map, the unclamped parts so far: T_ri's, then F_ms's.
+    parts: Vec<[Vec<[f32; 3]>; 2]>,
+}
+
+impl StreamRelight {
+    /// For `stride` coefficients per voxel under each of `envs` (SH coefficients as [`relight`]
+    /// takes them).
+    pub fn new(envs: &[Vec<[f32; 3]>], stride: usize) -> StreamRelight {
+        StreamRelight {
+            envs: envs
+                .iter()
+                .map(|e| (e.clone(), EnvPlanes::new(e, stride)))
+                .collect(),
+            stride,
+            parts: envs.iter().map(|_| Default::default()).collect(),
+        }
+    }
+
+    /// Takes the next voxels' coefficients (`stride` each) of part `part` (0: T_ri, 1: F_ms).
+    pub fn take(&mut self, part: usize, voxels: &[f32]) {
+        let stride = self.stride.max(1);
+        for ((_, env), parts) in self.envs.iter().zip(&mut self.parts) {
+            parts[part].par_extend(
+                voxels
+                    .par_chunks(stride)
+                    .with_min_len(SLOTS_PER_TASK)
+                    .map(|t| env.ls(t)),
+            );
+        }
+    }
+
+    /// Each map with its radiance, once both parts are in.
+    pub fn finish(self) -> Vec<(Vec<[f32; 3]>, Radiance)> {
+        self.envs
+            .into_iter()
+            .zip(self.parts)
+            .map(|((env, _), [direct, indirect])| (env, clamped(direct, indirect)))
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -119,8 +210,10 @@ mod tests {
                 sigma_t: 1.0,
                 albedo: 1.0,
             },
-            t_ri: Coefficients::F32(t_ri),
-            f_ms: Coefficients::F32(f_ms),
+            light: TransferLight::Coefficients {
+                t_ri: Coefficients::F32(t_ri),
+                f_ms: Coefficients::F32(f_ms),
+            },
             lattice: None,
         }
     }
@@ -134,7 +227,7 @@ mod tests {
         let c = [0.25f32, 1.0, 3.5];
         let mut env = vec![[0.0f32; 3]; 9];
         env[0] = c.map(|v| v * sqrt_4pi);
-        let r = relight(&t, &env);
+        let r = relight(&t, &env).unwrap();
         assert_eq!(r.direct.len(), t.layout.len());
         for (d, i) in r.direct.iter().zip(&r.indirect) {
             for ch in 0..3 {
@@ -158,7 +251,7 @@ mod tests {
             _ => (100.0, 100.0),
         });
         let env = vec![[4.0, 8.0, 12.0]; 4];
-        let r = relight(&t, &env);
+        let r = relight(&t, &env).unwrap();
         let inv = 1.0 / (4.0 * std::f32::consts::PI);
         for (slot, (d, i)) in r.direct.iter().zip(&r.indirect).enumerate() {
             let (want_d, want_i) = if slot % 2 == 0 {
@@ -184,12 +277,12 @@ mod tests {
         let env: Vec<[f32; 3]> = (0..100)
             .map(|i| [i as f32 * 0.01, 1.0 - i as f32 * 0.005, 0.3])
             .collect();
-        let a = relight(&t, &env);
+        let a = relight(&t, &env).unwrap();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
             .build()
             .unwrap();
-        let b = pool.install(|| relight(&t, &env));
+        let b = pool.install(|| relight(&t, &env).unwrap());
         assert_eq!(a, b);
     }
 }

@@ -27,8 +27,9 @@ use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
 use super::packing::{self, Precision, SectionReader, SectionWriter};
-use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout};
+use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout, TransferLight};
 use crate::error::{Error, Result};
+use crate::render::relight::StreamRelight;
 use crate::volume::grid::{Leaf, SparseGrid, TileLevel, Transform, LEAF_VOXELS};
 
 const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
@@ -264,6 +265,12 @@ pub fn write(
 ) -> Result<()> {
     let json = serde_json::to_vec(header).map_err(|e| Error::Runtime(e.to_string()))?;
     let coeffs = transfer.coeffs();
+    let Some((t_ri, f_ms)) = transfer.coefficients() else {
+        return Err(Error::Runtime(format!(
+            "{}: a transfer relit as it was read has no coefficients to write",
+            path.display()
+        )));
+    };
     crate::io::atomic::write_atomic(path, |file| {
         let mut w = Hashing {
             inner: std::io::BufWriter::new(file),
@@ -311,7 +318,7 @@ pub fn write(
                 .collect();
             s.bytes(&bytes)
         })?;
-        for values in [&transfer.t_ri, &transfer.f_ms] {
+        for values in [t_ri, f_ms] {
             put_section(&mut w, |s| {
                 packing::put_coefficients(s, &values.to_f32(coeffs), coeffs, header.coefficients)
             })?;
@@ -522,7 +529,15 @@ pub fn read_header(path: &Path) -> Result<Option<Header>> {
 /// Reads and verifies a whole cache.
 pub fn read(path: &Path) -> Result<Cache> {
     let (file, len) = open(path)?;
-    read_from(file, len).map_err(|m| damaged(path, m))
+    read_from(file, len, None).map_err(|m| damaged(path, m))
+}
+
+/// Reads and verifies a cache for rendering under maps whose SH coefficients are `envs` only: its
+/// transfer is [`TransferLight::Relit`], its coefficients relit as they stream in and never held
+/// (on a big cloud they are most of what a render would hold beside the density).
+pub fn read_relit(path: &Path, envs: &[Vec<[f32; 3]>]) -> Result<Cache> {
+    let (file, len) = open(path)?;
+    read_from(file, len, Some(envs)).map_err(|m| damaged(path, m))
 }
 
 /// Reads a cache's header and verifies the checksum over the whole file, without decoding the
@@ -581,7 +596,11 @@ fn verified_header(
 
 /// Reads the `len`-byte cache `source`: the checksum first ([`verified_header`]), then the
 /// sections in order.
-fn read_from(mut source: impl BufRead + Seek, len: u64) -> std::result::Result<Cache, String> {
+fn read_from(
+    mut source: impl BufRead + Seek,
+    len: u64,
+    envs: Option<&[Vec<[f32; 3]>]>,
+) -> std::result::Result<Cache, String> {
     let (header, start) = verified_header(&mut source, len)?;
     source
         .seek(SeekFrom::Start(start as u64))
@@ -590,11 +609,16 @@ fn read_from(mut source: impl BufRead + Seek, len: u64) -> std::result::Result<C
         reader: source,
         left: len - 8 - start as u64,
     };
-    decode(header, body)
+    decode(header, body, envs)
 }
 
-/// The cache's data from `body`, which starts after the header.
-fn decode(header: Header, mut body: Body<impl BufRead>) -> std::result::Result<Cache, String> {
+/// The cache's data from `body`, which starts after the header: the coefficients as stored, or
+/// (`envs`: SH coefficients of maps) relit under each as they stream in.
+fn decode(
+    header: Header,
+    mut body: Body<impl BufRead>,
+    envs: Option<&[Vec<[f32; 3]>]>,
+) -> std::result::Result<Cache, String> {
     let settings = header
         .settings()
         .ok_or("the header names an unknown lattice")?;
@@ -653,8 +677,25 @@ fn decode(header: Header, mut body: Body<impl BufRead>) -> std::result::Result<C
         .ok_or("transfer voxels are repeated or out of order")?;
     let coeffs = settings.bands * settings.bands;
     let precision = header.coefficients;
-    let t_ri = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
-    let f_ms = body.section(|r| packing::get_coefficients(r, layout.len(), coeffs, precision))?;
+    let n = layout.len();
+    let light = match envs {
+        None => TransferLight::Coefficients {
+            t_ri: body.section(|r| packing::get_coefficients(r, n, coeffs, precision))?,
+            f_ms: body.section(|r| packing::get_coefficients(r, n, coeffs, precision))?,
+        },
+        Some(envs) => {
+            let mut relit = StreamRelight::new(envs, coeffs);
+            for part in 0..2 {
+                body.section(|r| {
+                    packing::each_voxel_batch(r, n, coeffs, precision, |batch| {
+                        relit.take(part, batch);
+                        Ok(())
+                    })
+                })?;
+            }
+            TransferLight::Relit(relit.finish())
+        }
+    };
     if body.left != 0 {
         return Err("padded: bytes follow the last section".into());
     }
@@ -665,8 +706,7 @@ fn decode(header: Header, mut body: Body<impl BufRead>) -> std::result::Result<C
             sigma_t: header.sigma_t,
             albedo: header.albedo,
         },
-        t_ri,
-        f_ms,
+        light,
         lattice: (!settings.single_scatter).then_some(settings.lattice),
     };
     Ok(Cache {
@@ -702,8 +742,10 @@ mod tests {
                 sigma_t: 2.0,
                 albedo: 0.5,
             },
-            t_ri: Coefficients::F32((0..n).map(|i| i as f32 * 0.25).collect()),
-            f_ms: Coefficients::F32((0..n).map(|i| -(i as f32)).collect()),
+            light: TransferLight::Coefficients {
+                t_ri: Coefficients::F32((0..n).map(|i| i as f32 * 0.25).collect()),
+                f_ms: Coefficients::F32((0..n).map(|i| -(i as f32) * 0.1).collect()),
+            },
             lattice: Some(LatticeKind::All),
         };
         let settings = BakeSettings {
@@ -729,7 +771,7 @@ mod tests {
     }
 
     fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
-        read_from(std::io::Cursor::new(data), data.len() as u64)
+        read_from(std::io::Cursor::new(data), data.len() as u64, None)
     }
 
     fn tiny() -> (SparseGrid, Transfer, Header) {
@@ -772,11 +814,44 @@ mod tests {
             close(back.density.value(at(300)), peak, 0.0);
             assert_eq!(back.density.value(IVec3::new(0, 16, 6)), 0.0);
             assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
-            let (back_t_ri, t_ri) = (back.transfer.t_ri.to_f32(4), t.t_ri.to_f32(4));
+            let (back_t_ri, t_ri) = (
+                back.transfer.coefficients().unwrap().0.to_f32(4),
+                t.coefficients().unwrap().0.to_f32(4),
+            );
             for (a, b) in back_t_ri.iter().zip(t_ri.iter()) {
                 // Within q8's half step of a band scale (packing's tests bound each precision exactly).
                 close(*a, *b, b.abs().max(1.0) * 5e-3);
             }
+        }
+    }
+
+    #[test]
+    fn relit_as_read_is_relit_after_reading_bit_for_bit() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.vtc");
+        let envs: Vec<Vec<[f32; 3]>> = vec![
+            vec![
+                [1.0, 0.5, 0.25],
+                [0.3, -0.2, 0.1],
+                [0.0, 0.1, 0.2],
+                [-0.1, 0.0, 0.4],
+            ],
+            vec![[0.2, 0.2, 0.2]],
+        ];
+        for precision in [Precision::F32, Precision::F16, Precision::Q8] {
+            let (g, t, h) = tiny_with(precision, 0.5);
+            write(&path, &h, &g, &t).unwrap();
+            let held = read(&path).unwrap().transfer;
+            let relit = read_relit(&path, &envs).unwrap().transfer;
+            assert_eq!(relit.layout.voxels(), held.layout.voxels());
+            assert!(relit.coefficients().is_none());
+            for env in &envs {
+                let want = crate::render::relight::relight(&held, env).unwrap();
+                assert_eq!(crate::render::relight::relight(&relit, env).unwrap(), want);
+            }
+            // Other maps cannot be relit, nor can a relit transfer be written.
+            assert!(crate::render::relight::relight(&relit, &[[0.5; 3]]).is_err());
+            assert!(write(&dir.path().join("u.vtc"), &h, &g, &relit).is_err());
         }
     }
 
@@ -810,8 +885,7 @@ mod tests {
         write(&path, &h, &g, &t).unwrap();
         let back = read(&path).unwrap();
         assert_eq!(back.header, h);
-        assert_eq!(back.transfer.t_ri, t.t_ri);
-        assert_eq!(back.transfer.f_ms, t.f_ms);
+        assert_eq!(back.transfer.light, t.light);
         assert_eq!(back.transfer.layout.voxels(), t.layout.voxels());
         assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
         let bytes = std::fs::read(&path).unwrap();

@@ -65,17 +65,13 @@ impl Coefficients {
             Coefficients::F32(v) => out.copy_from_slice(&v[slot * n..(slot + 1) * n]),
             Coefficients::F16(v) => v[slot * n..(slot + 1) * n].convert_to_f32_slice(out),
             Coefficients::Q8 { dc, scales, bytes } => {
-                let bands = bands_of(n);
-                let per_voxel = bands - 1;
-                out[0] = dc[slot].to_f32();
-                let q = &bytes[slot * (n - 1)..(slot + 1) * (n - 1)];
-                for l in 1..bands {
-                    let s = scales[slot * per_voxel + l - 1].to_f32() / Q8_MAX;
-                    let (lo, hi) = (l * l, (l + 1) * (l + 1));
-                    for (o, b) in out[lo..hi].iter_mut().zip(&q[lo - 1..hi - 1]) {
-                        *o = *b as f32 * s;
-                    }
-                }
+                let per_voxel = bands_of(n) - 1;
+                q8_voxel(
+                    dc[slot],
+                    &scales[slot * per_voxel..(slot + 1) * per_voxel],
+                    &bytes[slot * (n - 1)..(slot + 1) * (n - 1)],
+                    out,
+                );
             }
         }
     }
@@ -91,6 +87,19 @@ impl Coefficients {
                 }
                 Cow::Owned(out)
             }
+        }
+    }
+}
+
+/// One q8 voxel's `out.len()` coefficients as f32: its DC term, its scale per band l ≥ 1 and its
+/// signed bytes after the DC term.
+pub fn q8_voxel(dc: f16, scales: &[f16], q: &[i8], out: &mut [f32]) {
+    out[0] = dc.to_f32();
+    for (l, scale) in (1..bands_of(out.len())).zip(scales) {
+        let s = scale.to_f32() / Q8_MAX;
+        let (lo, hi) = (l * l, (l + 1) * (l + 1));
+        for (o, b) in out[lo..hi].iter_mut().zip(&q[lo - 1..hi - 1]) {
+            *o = *b as f32 * s;
         }
     }
 }

@@ -4,6 +4,7 @@
 
 pub mod cache;
 pub(crate) mod coefficients;
+use crate::render::relight::Radiance;
 pub use coefficients::Coefficients;
 mod fit;
 pub use fit::fitted_field;
@@ -39,13 +40,25 @@ pub struct Transfer {
     pub layout: TransferLayout,
     pub bands: usize,
     pub medium: Medium,
-    /// Unscattered transfer T_ri, `layout.len() × bands²`.
-    pub t_ri: Coefficients,
-    /// Multiply-scattered transfer F_ms (zero after a `--single-scatter` bake), same shape.
-    pub f_ms: Coefficients,
+    pub light: TransferLight,
     /// The lattice that solved F_ms, and that solves the suns' multiple scattering (`None`: the
     /// bake was `--single-scatter`, and so is the suns' light).
     pub lattice: Option<lattice::LatticeKind>,
+}
+
+/// What a transfer holds of its light.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TransferLight {
+    /// Unscattered transfer T_ri, `layout.len() × bands²`, and multiply-scattered transfer F_ms
+    /// (zero after a `--single-scatter` bake), same shape.
+    Coefficients {
+        t_ri: Coefficients,
+        f_ms: Coefficients,
+    },
+    /// What the coefficients give under each of a render's maps (its SH coefficients, as
+    /// [`crate::render::relight::relight`] takes them), relit as a cache streamed them in
+    /// ([`cache::read_relit`]) and never held.
+    Relit(Vec<(Vec<[f32; 3]>, Radiance)>),
 }
 
 impl Transfer {
@@ -53,9 +66,20 @@ impl Transfer {
         self.bands * self.bands
     }
 
-    /// Bytes the coefficients hold.
+    /// T_ri and F_ms (`None`: relit as read, [`TransferLight::Relit`]).
+    pub fn coefficients(&self) -> Option<(&Coefficients, &Coefficients)> {
+        match &self.light {
+            TransferLight::Coefficients { t_ri, f_ms } => Some((t_ri, f_ms)),
+            TransferLight::Relit(_) => None,
+        }
+    }
+
+    /// Bytes the coefficients, or the radiance relit from them, hold.
     pub fn coefficient_bytes(&self) -> usize {
-        self.t_ri.memory_bytes() + self.f_ms.memory_bytes()
+        match &self.light {
+            TransferLight::Coefficients { t_ri, f_ms } => t_ri.memory_bytes() + f_ms.memory_bytes(),
+            TransferLight::Relit(maps) => maps.iter().map(|(_, r)| r.memory_bytes()).sum(),
+        }
     }
 }
 
@@ -171,8 +195,10 @@ pub fn bake(
         layout,
         bands: settings.bands,
         medium,
-        t_ri: Coefficients::F32(t_ri),
-        f_ms: Coefficients::F32(f_ms),
+        light: TransferLight::Coefficients {
+            t_ri: Coefficients::F32(t_ri),
+            f_ms: Coefficients::F32(f_ms),
+        },
         lattice: (!settings.single_scatter).then_some(settings.lattice),
     };
     (transfer, stats)

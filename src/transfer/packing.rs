@@ -10,7 +10,7 @@ use std::io::{BufRead, Read, Write};
 
 use serde::{Deserialize, Serialize};
 
-use super::coefficients::{bands_of, Coefficients, Q8_MAX};
+use super::coefficients::{bands_of, q8_voxel, Coefficients, Q8_MAX};
 
 /// zstd's level: the default, as fast as level 1 on these arrays and as small as level 15.
 const ZSTD_LEVEL: i32 = 3;
@@ -253,6 +253,88 @@ pub fn get_coefficients(
     })
 }
 
+/// Voxels per batch [`each_voxel_batch`] hands over: enough for its consumer's parallel work to
+/// pay, few enough (1.6 MB of f32 at ten bands) to stay in cache.
+pub const BATCH_VOXELS: usize = 4096;
+
+/// Reads what [`put_coefficients`] wrote for `voxels` voxels as [`get_coefficients`] does, but
+/// hands `take` the f32 coefficients of up to [`BATCH_VOXELS`] voxels at a time, in order, and
+/// holds no more than that (and, for q8, the DC terms and scales): a render relights a cache's
+/// coefficients as they stream in, never holding them all.
+pub fn each_voxel_batch(
+    r: &mut SectionReader,
+    voxels: usize,
+    coeffs: usize,
+    precision: Precision,
+    mut take: impl FnMut(&[f32]) -> Parse<()>,
+) -> Parse<()> {
+    let n = voxels
+        .checked_mul(coeffs)
+        .ok_or("the header's counts are impossible")?;
+    let batch = BATCH_VOXELS * coeffs.max(1);
+    let mut out: Vec<f32> = Vec::with_capacity(batch.min(n));
+    // Appends whole voxels' values, handing over each full batch.
+    let mut put = |mut values: &[f32], out: &mut Vec<f32>| -> Parse<()> {
+        while !values.is_empty() {
+            let (now, later) = values.split_at((batch - out.len()).min(values.len()));
+            out.extend_from_slice(now);
+            values = later;
+            if out.len() == batch {
+                take(out)?;
+                out.clear();
+            }
+        }
+        Ok(())
+    };
+    match precision {
+        Precision::F32 => r.each_chunk(n, f32::from_le_bytes, |c| put(c, &mut out))?,
+        Precision::F16 => r.each_chunk(
+            n,
+            |b| half::f16::from_le_bytes(b).to_f32(),
+            |c| put(c, &mut out),
+        )?,
+        Precision::Q8 => {
+            let per_voxel = bands_of(coeffs) - 1;
+            let dc = r.values(voxels, half::f16::from_le_bytes)?;
+            let scales = r.values(voxels * per_voxel, half::f16::from_le_bytes)?;
+            let mut voxel = [0.0f32; super::coefficients::MAX_COEFFS];
+            let voxel = &mut voxel[..coeffs];
+            let mut q: Vec<i8> = Vec::with_capacity(coeffs);
+            let mut slot = 0;
+            let mut decode = |q: &[i8], out: &mut Vec<f32>| -> Parse<()> {
+                let s = &scales[slot * per_voxel..(slot + 1) * per_voxel];
+                q8_voxel(dc[slot], s, q, voxel);
+                slot += 1;
+                put(voxel, out)
+            };
+            if coeffs == 1 {
+                // A single band stores no bytes: each voxel is its DC term alone.
+                for _ in 0..voxels {
+                    decode(&[], &mut out)?;
+                }
+            } else {
+                r.each_chunk(voxels * (coeffs - 1), i8::from_le_bytes, |chunk| {
+                    let mut bytes = &chunk[..];
+                    while !bytes.is_empty() {
+                        let (now, later) = bytes.split_at((coeffs - 1 - q.len()).min(bytes.len()));
+                        q.extend_from_slice(now);
+                        bytes = later;
+                        if q.len() == coeffs - 1 {
+                            decode(&q, &mut out)?;
+                            q.clear();
+                        }
+                    }
+                    Ok(())
+                })?;
+            }
+        }
+    }
+    if !out.is_empty() {
+        take(&out)?;
+    }
+    Ok(())
+}
+
 /// Band l's 2l + 1 coefficients of one voxel.
 fn band(c: &[f32], l: usize) -> &[f32] {
     &c[l * l..(l + 1) * (l + 1)]
@@ -307,6 +389,31 @@ mod tests {
                 (h - 0.4) * 10f32.powi((i % 5) as i32 - 3)
             })
             .collect()
+    }
+
+    #[test]
+    fn voxel_batches_decode_as_the_coefficients_held() {
+        // Across batches and byte chunks, at every precision, and a single band (q8: no bytes).
+        for (coeffs, voxels) in [(9, BATCH_VOXELS * 2 + 123), (1, 1000)] {
+            let v: Vec<f32> = sample(voxels).into_iter().take(voxels * coeffs).collect();
+            for precision in [Precision::F32, Precision::F16, Precision::Q8] {
+                let mut w = SectionWriter::new().unwrap();
+                put_coefficients(&mut w, &v, coeffs, precision).unwrap();
+                let frame = w.finish().unwrap();
+                let mut r = SectionReader::new(&frame[..]).unwrap();
+                let held = get_coefficients(&mut r, voxels, coeffs, precision).unwrap();
+                let mut r = SectionReader::new(&frame[..]).unwrap();
+                let mut streamed = Vec::new();
+                each_voxel_batch(&mut r, voxels, coeffs, precision, |batch| {
+                    assert!(batch.len() <= BATCH_VOXELS * coeffs && batch.len() % coeffs == 0);
+                    streamed.extend_from_slice(batch);
+                    Ok(())
+                })
+                .unwrap();
+                r.finish().unwrap();
+                assert_eq!(streamed, held.to_f32(coeffs).into_owned(), "{precision:?}");
+            }
+        }
     }
 
     #[test]

@@ -37,7 +37,10 @@ fn furnace_deviation(t: &Transfer, select: impl Fn(IVec3) -> bool) -> (f32, usiz
     let mut worst = 0f32;
     let mut count = 0;
     let n = t.coeffs();
-    let (t_ri, f_ms) = (t.t_ri.to_f32(n), t.f_ms.to_f32(n));
+    let (t_ri, f_ms) = (
+        t.coefficients().unwrap().0.to_f32(n),
+        t.coefficients().unwrap().1.to_f32(n),
+    );
     for (slot, v) in t.layout.voxels().iter().enumerate() {
         if select(*v) {
             let dev = (t_ri[slot * n] + f_ms[slot * n]) / full - 1.0;
@@ -151,8 +154,20 @@ fn albedo_zero_scatters_nothing() {
         &settings(2, 6),
         &crate::io::progress::Bars { quiet: true },
     );
-    assert!(t.f_ms.to_f32(t.coeffs()).iter().all(|v| *v == 0.0));
-    assert!(t.t_ri.to_f32(t.coeffs()).iter().any(|v| *v != 0.0));
+    assert!(t
+        .coefficients()
+        .unwrap()
+        .1
+        .to_f32(t.coeffs())
+        .iter()
+        .all(|v| *v == 0.0));
+    assert!(t
+        .coefficients()
+        .unwrap()
+        .0
+        .to_f32(t.coeffs())
+        .iter()
+        .any(|v| *v != 0.0));
 }
 
 /// Mean of the SH dot product T·E over the voxels above and below the sphere's centre.
@@ -206,9 +221,19 @@ fn light_from_the_zenith_lights_the_top() {
         &settings(bands, 4),
         &crate::io::progress::Bars { quiet: true },
     );
-    let (up, down) = upper_lower(&t.t_ri.to_f32(coeffs), &t.layout, &env, coeffs);
+    let (up, down) = upper_lower(
+        &t.coefficients().unwrap().0.to_f32(coeffs),
+        &t.layout,
+        &env,
+        coeffs,
+    );
     assert!(up > 2.0 * down, "T_ri: upper {up} lower {down}");
-    let (up, down) = upper_lower(&t.f_ms.to_f32(coeffs), &t.layout, &env, coeffs);
+    let (up, down) = upper_lower(
+        &t.coefficients().unwrap().1.to_f32(coeffs),
+        &t.layout,
+        &env,
+        coeffs,
+    );
     assert!(up > down, "F_ms: upper {up} lower {down}");
 }
 
@@ -387,7 +412,7 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
         },
         &indicatif::ProgressBar::hidden(),
     );
-    let t_ri = t.t_ri.to_f32(t.coeffs());
+    let t_ri = t.coefficients().unwrap().0.to_f32(t.coeffs());
     let (mut fitted_worst, mut point_mean, mut n) = (0f64, 0f64, 0);
     for &v in t.layout.voxels().iter().step_by(t.layout.len() / 12) {
         let fitted = normal_residual(&d, &t.layout, &plain, v, |s| t_ri[s * t.coeffs()] as f64);
