@@ -3,6 +3,8 @@
 //! ("indirect") separately, so the renderer can write them as their own EXR layers. This is the
 //! step that makes a new environment cost milliseconds: a dot product per voxel and channel.
 
+use std::borrow::Cow;
+
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -29,8 +31,8 @@ impl Radiance {
 }
 
 /// Ls per slot from `env_coeffs` — the environment's RGB SH coefficients (index i = l(l+1)+m,
-/// already windowed and rotated). A transfer relit as it was read gives the radiance of the map
-/// it was read for; another map is an error, as there are no coefficients to relight.
+/// already windowed and rotated). A transfer relit as it was read lends the radiance of the map it
+/// was read for; another map is an error, as there are no coefficients to relight.
 ///
 /// The sum runs over the coefficients both sides have: with orthonormal SH a missing coefficient is
 /// zero, so a shorter side simply truncates the product — no mismatch error is needed.
@@ -47,14 +49,14 @@ impl Radiance {
 ///
 /// Each slot's sums run in a fixed order (eight interleaved partial sums, then the tail) inside one
 /// task, so the output is bit-identical for any thread count, and for a transfer relit as read.
-pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Result<Radiance> {
+pub fn relight<'a>(transfer: &'a Transfer, env_coeffs: &[[f32; 3]]) -> Result<Cow<'a, Radiance>> {
     let (t_ri, f_ms) = match &transfer.light {
         TransferLight::Coefficients { t_ri, f_ms } => (t_ri, f_ms),
         TransferLight::Relit(maps) => {
             return maps
                 .iter()
                 .find(|(env, _)| env == env_coeffs)
-                .map(|(_, radiance)| radiance.clone())
+                .map(|(_, radiance)| Cow::Borrowed(radiance))
                 .ok_or_else(|| {
                     Error::Runtime(
                         "the transfer was relit for other maps as it was read: open it again"
@@ -82,7 +84,7 @@ pub fn relight(transfer: &Transfer, env_coeffs: &[[f32; 3]]) -> Result<Radiance>
             .collect()
     };
     let (direct, indirect) = rayon::join(|| per_slot(t_ri), || per_slot(f_ms));
-    Ok(clamped(direct, indirect))
+    Ok(Cow::Owned(clamped(direct, indirect)))
 }
 
 /// One environment's SH coefficients as channel planes, cut to what a transfer of `stride`
