@@ -320,12 +320,17 @@ impl Scene {
 
     /// The suns' share of [`Scene::light_plan`].
     pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
+        // The shadow volume's estimate walks the density's blocks: only for suns to build.
+        let new_suns = self.new_suns(lighting) as u64;
+        if new_suns == 0 {
+            return 0;
+        }
         let per_sun = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid)
             + self
                 .transfer
                 .as_ref()
                 .map_or(0, |t| t.layout.len() as u64 * 4);
-        self.new_suns(lighting) as u64 * per_sun
+        new_suns * per_sun
     }
 
     /// The working memory of a new sun's multiple-scattering solve, while it runs (one at a

@@ -67,23 +67,11 @@ pub fn relight<'a>(transfer: &'a Transfer, env_coeffs: &[[f32; 3]]) -> Result<Co
     };
     let stride = transfer.coeffs();
     let env = EnvPlanes::new(env_coeffs, stride);
-    // Each voxel's coefficients decode into a buffer on the stack (they are held as the cache
-    // stores them), then one dot product per channel.
-    let per_slot = |all: &Coefficients| -> Vec<[f32; 3]> {
-        if stride == 0 {
-            return vec![[0.0; 3]; transfer.layout.len()];
-        }
-        (0..transfer.layout.len())
-            .into_par_iter()
-            .with_min_len(SLOTS_PER_TASK)
-            .map(|slot| {
-                let mut voxel = [0.0f32; MAX_COEFFS];
-                all.voxel(slot, &mut voxel[..stride]);
-                env.ls(&voxel[..stride])
-            })
-            .collect()
-    };
-    let (direct, indirect) = rayon::join(|| per_slot(t_ri), || per_slot(f_ms));
+    let n = transfer.layout.len();
+    let (direct, indirect) = rayon::join(
+        || env.each_voxel(t_ri, n, stride).collect(),
+        || env.each_voxel(f_ms, n, stride).collect(),
+    );
     Ok(Cow::Owned(clamped(direct, indirect)))
 }
 
@@ -100,6 +88,28 @@ impl EnvPlanes {
         EnvPlanes {
             planes: std::array::from_fn(|c| env_coeffs[..n].iter().map(|e| e[c]).collect()),
         }
+    }
+
+    /// Ls of each of the `voxels` voxels of `all` (`stride` coefficients each), in parallel: each
+    /// voxel's coefficients decode into a buffer on the stack (they are held as the cache stores
+    /// them), then one dot product per channel.
+    fn each_voxel<'a>(
+        &'a self,
+        all: &'a Coefficients,
+        voxels: usize,
+        stride: usize,
+    ) -> impl IndexedParallelIterator<Item = [f32; 3]> + 'a {
+        (0..voxels)
+            .into_par_iter()
+            .with_min_len(SLOTS_PER_TASK)
+            .map(move |slot| {
+                if stride == 0 {
+                    return [0.0; 3];
+                }
+                let mut voxel = [0.0f32; MAX_COEFFS];
+                all.voxel(slot, &mut voxel[..stride]);
+                self.ls(&voxel[..stride])
+            })
     }
 
     /// (1/4π) Σᵢ Tᵢ Eᵢ per channel for one voxel's coefficients `t`.
@@ -162,16 +172,12 @@ impl StreamRelight {
         }
     }
 
-    /// Takes the next voxels' coefficients (`stride` each) of part `part` (0: T_ri, 1: F_ms).
-    pub fn take(&mut self, part: usize, voxels: &[f32]) {
-        let stride = self.stride.max(1);
+    /// Takes the next voxels' coefficients of part `part` (0: T_ri, 1: F_ms).
+    pub fn take(&mut self, part: usize, voxels: &Coefficients) {
+        let stride = self.stride;
+        let count = voxels.len() / stride.max(1);
         for ((_, env), parts) in self.envs.iter().zip(&mut self.parts) {
-            parts[part].par_extend(
-                voxels
-                    .par_chunks(stride)
-                    .with_min_len(SLOTS_PER_TASK)
-                    .map(|t| env.ls(t)),
-            );
+            parts[part].par_extend(env.each_voxel(voxels, count, stride));
         }
     }
 

@@ -93,7 +93,7 @@ impl Coefficients {
 
 /// One q8 voxel's `out.len()` coefficients as f32: its DC term, its scale per band l ≥ 1 and its
 /// signed bytes after the DC term.
-pub fn q8_voxel(dc: f16, scales: &[f16], q: &[i8], out: &mut [f32]) {
+fn q8_voxel(dc: f16, scales: &[f16], q: &[i8], out: &mut [f32]) {
     out[0] = dc.to_f32();
     for (l, scale) in (1..bands_of(out.len())).zip(scales) {
         let s = scale.to_f32() / Q8_MAX;

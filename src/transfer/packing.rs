@@ -10,7 +10,7 @@ use std::io::{BufRead, Read, Write};
 
 use serde::{Deserialize, Serialize};
 
-use super::coefficients::{bands_of, q8_voxel, Coefficients, Q8_MAX};
+use super::coefficients::{bands_of, Coefficients, Q8_MAX};
 
 /// zstd's level: the default, as fast as level 1 on these arrays and as small as level 15.
 const ZSTD_LEVEL: i32 = 3;
@@ -258,79 +258,79 @@ pub fn get_coefficients(
 pub const BATCH_VOXELS: usize = 4096;
 
 /// Reads what [`put_coefficients`] wrote for `voxels` voxels as [`get_coefficients`] does, but
-/// hands `take` the f32 coefficients of up to [`BATCH_VOXELS`] voxels at a time, in order, and
-/// holds no more than that (and, for q8, the DC terms and scales): a render relights a cache's
-/// coefficients as they stream in, never holding them all.
+/// hands `take` up to [`BATCH_VOXELS`] voxels at a time, in order and held as stored, and holds
+/// no more than that (and, for q8, the DC terms and scales): a render relights a cache's
+/// coefficients as they stream in, never holding them all, and decodes each batch in parallel.
 pub fn each_voxel_batch(
     r: &mut SectionReader,
     voxels: usize,
     coeffs: usize,
     precision: Precision,
-    mut take: impl FnMut(&[f32]) -> Parse<()>,
+    mut take: impl FnMut(&Coefficients) -> Parse<()>,
 ) -> Parse<()> {
     let n = voxels
         .checked_mul(coeffs)
         .ok_or("the header's counts are impossible")?;
-    let batch = BATCH_VOXELS * coeffs.max(1);
-    let mut out: Vec<f32> = Vec::with_capacity(batch.min(n));
-    // Appends whole voxels' values, handing over each full batch.
-    let mut put = |mut values: &[f32], out: &mut Vec<f32>| -> Parse<()> {
-        while !values.is_empty() {
-            let (now, later) = values.split_at((batch - out.len()).min(values.len()));
-            out.extend_from_slice(now);
-            values = later;
-            if out.len() == batch {
-                take(out)?;
-                out.clear();
-            }
-        }
-        Ok(())
-    };
+    let per_batch = BATCH_VOXELS * coeffs.max(1);
     match precision {
-        Precision::F32 => r.each_chunk(n, f32::from_le_bytes, |c| put(c, &mut out))?,
-        Precision::F16 => r.each_chunk(
-            n,
-            |b| half::f16::from_le_bytes(b).to_f32(),
-            |c| put(c, &mut out),
-        )?,
+        Precision::F32 => batches(r, n, per_batch, f32::from_le_bytes, |v| {
+            take(&Coefficients::F32(v))
+        }),
+        Precision::F16 => batches(r, n, per_batch, half::f16::from_le_bytes, |v| {
+            take(&Coefficients::F16(v))
+        }),
         Precision::Q8 => {
             let per_voxel = bands_of(coeffs) - 1;
             let dc = r.values(voxels, half::f16::from_le_bytes)?;
             let scales = r.values(voxels * per_voxel, half::f16::from_le_bytes)?;
-            let mut voxel = [0.0f32; super::coefficients::MAX_COEFFS];
-            let voxel = &mut voxel[..coeffs];
-            let mut q: Vec<i8> = Vec::with_capacity(coeffs);
-            let mut slot = 0;
-            let mut decode = |q: &[i8], out: &mut Vec<f32>| -> Parse<()> {
-                let s = &scales[slot * per_voxel..(slot + 1) * per_voxel];
-                q8_voxel(dc[slot], s, q, voxel);
-                slot += 1;
-                put(voxel, out)
+            let mut first = 0;
+            let mut hand = |bytes: Vec<i8>, count: usize| {
+                let batch = Coefficients::Q8 {
+                    dc: dc[first..first + count].to_vec(),
+                    scales: scales[first * per_voxel..(first + count) * per_voxel].to_vec(),
+                    bytes,
+                };
+                first += count;
+                take(&batch)
             };
-            if coeffs == 1 {
+            match coeffs - 1 {
                 // A single band stores no bytes: each voxel is its DC term alone.
-                for _ in 0..voxels {
-                    decode(&[], &mut out)?;
-                }
-            } else {
-                r.each_chunk(voxels * (coeffs - 1), i8::from_le_bytes, |chunk| {
-                    let mut bytes = &chunk[..];
-                    while !bytes.is_empty() {
-                        let (now, later) = bytes.split_at((coeffs - 1 - q.len()).min(bytes.len()));
-                        q.extend_from_slice(now);
-                        bytes = later;
-                        if q.len() == coeffs - 1 {
-                            decode(&q, &mut out)?;
-                            q.clear();
-                        }
-                    }
-                    Ok(())
-                })?;
+                0 => (0..voxels)
+                    .step_by(BATCH_VOXELS)
+                    .try_for_each(|start| hand(Vec::new(), (voxels - start).min(BATCH_VOXELS))),
+                q => batches(r, voxels * q, BATCH_VOXELS * q, i8::from_le_bytes, |b| {
+                    let count = b.len() / q;
+                    hand(b, count)
+                }),
             }
         }
     }
-    if !out.is_empty() {
-        take(&out)?;
+}
+
+/// `n` values decoded by `decode`, handed to `full` `per_batch` at a time (the last batch may be
+/// shorter).
+fn batches<const W: usize, T: Copy>(
+    r: &mut SectionReader,
+    n: usize,
+    per_batch: usize,
+    decode: impl Fn([u8; W]) -> T,
+    mut full: impl FnMut(Vec<T>) -> Parse<()>,
+) -> Parse<()> {
+    let mut batch = Vec::with_capacity(per_batch.min(n));
+    r.each_chunk(n, decode, |chunk| {
+        let mut chunk = &chunk[..];
+        while !chunk.is_empty() {
+            let (now, later) = chunk.split_at((per_batch - batch.len()).min(chunk.len()));
+            batch.extend_from_slice(now);
+            chunk = later;
+            if batch.len() == per_batch {
+                full(std::mem::replace(&mut batch, Vec::with_capacity(per_batch)))?;
+            }
+        }
+        Ok(())
+    })?;
+    if !batch.is_empty() {
+        full(batch)?;
     }
     Ok(())
 }
@@ -405,8 +405,9 @@ mod tests {
                 let mut r = SectionReader::new(&frame[..]).unwrap();
                 let mut streamed = Vec::new();
                 each_voxel_batch(&mut r, voxels, coeffs, precision, |batch| {
-                    assert!(batch.len() <= BATCH_VOXELS * coeffs && batch.len() % coeffs == 0);
-                    streamed.extend_from_slice(batch);
+                    let f = batch.to_f32(coeffs);
+                    assert!(f.len() <= BATCH_VOXELS * coeffs && f.len() % coeffs == 0);
+                    streamed.extend_from_slice(&f);
                     Ok(())
                 })
                 .unwrap();
