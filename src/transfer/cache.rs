@@ -334,7 +334,7 @@ pub fn write(
 fn active_values(leaf: &Leaf) -> impl Iterator<Item = f32> + '_ {
     (0..LEAF_VOXELS)
         .filter(|&i| leaf.is_active(i))
-        .map(|i| leaf.values[i])
+        .map(|i| leaf.values.get(i))
 }
 
 /// Active voxels in a leaf's mask.
@@ -348,6 +348,8 @@ struct LeafFill {
     leaves: std::iter::Peekable<std::vec::IntoIter<(IVec3, [u64; 8], usize)>>,
     /// The next leaf's values so far.
     pending: Vec<f32>,
+    /// The values are f16s: the leaves hold them so ([`Leaf::into_f16`]).
+    f16: bool,
 }
 
 impl LeafFill {
@@ -367,7 +369,11 @@ impl LeafFill {
                 for (slot, v) in slots.zip(self.pending.drain(..)) {
                     array[slot] = v;
                 }
-                grid.insert_leaf(origin, mask, array);
+                let leaf = Leaf::new(origin, mask, array, grid.background);
+                grid.push_leaf(match self.f16 {
+                    true => leaf.into_f16(),
+                    false => leaf,
+                });
             }
             if values.is_empty() {
                 return Ok(());
@@ -647,6 +653,7 @@ fn decode(
     let mut fill = LeafFill {
         leaves: masks.into_iter().peekable(),
         pending: Vec::with_capacity(LEAF_VOXELS),
+        f16: header.density == Precision::F16,
     };
     fill.take(&[], &mut density)?;
     body.section(|r| {
@@ -807,6 +814,14 @@ mod tests {
             write(&path, &h, &g, &t).unwrap();
             let back = read(&path).unwrap();
             assert_eq!(back.header, h);
+            // An f16 density is held as f16.
+            let held = if density == Precision::F16 {
+                1024
+            } else {
+                2048
+            };
+            let leaves = back.density.leaves();
+            assert!(leaves.iter().all(|l| l.values.memory_bytes() == held));
             let close = |a: f32, b: f32, tol: f32| assert!((a - b).abs() <= tol, "{a} vs {b}");
             // Leaf slot i is voxel (i / 64, i / 8 % 8, i % 8) of the leaf at (0, 16, 0).
             let at = |i: i32| IVec3::new(i / 64, 16 + i / 8 % 8, i % 8);

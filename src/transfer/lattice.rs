@@ -493,7 +493,7 @@ impl DensityMeans {
             let count = leaf.active_count() as f64;
             let sum: f32 = (0..LEAF_VOXELS)
                 .filter(|&slot| leaf.is_active(slot))
-                .map(|slot| leaf.values[slot])
+                .map(|slot| leaf.values.get(slot))
                 .sum();
             (sum / count.max(1.0) as f32, count)
         });

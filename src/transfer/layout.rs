@@ -58,7 +58,7 @@ impl TransferLayout {
         let mut core: hashbrown::HashSet<IVec3> = hashbrown::HashSet::new();
         for leaf in density.leaves() {
             for slot in 0..LEAF_VOXELS {
-                if leaf.is_active(slot) && leaf.values[slot] > 0.0 {
+                if leaf.is_active(slot) && leaf.values.get(slot) > 0.0 {
                     let p = leaf.origin + slot_offset(slot);
                     core.insert(IVec3::new(
                         to_transfer(p.x),

@@ -203,11 +203,11 @@ fn fill(blocks: &[Block; 8], out: &mut Brick) {
         let n = ((x / dim) << 2) | ((y / dim) << 1);
         let start = ((x % dim) * dim + y % dim) * dim;
         match blocks[n] {
-            Block::Leaf(leaf) => out[..dim].copy_from_slice(&leaf.values[start..start + dim]),
+            Block::Leaf(leaf) => leaf.values.copy_to(start, &mut out[..dim]),
             Block::Constant(c) => out[..dim].fill(c),
         }
         out[dim] = match blocks[n | 1] {
-            Block::Leaf(leaf) => leaf.values[start],
+            Block::Leaf(leaf) => leaf.values.get(start),
             Block::Constant(c) => c,
         };
     }

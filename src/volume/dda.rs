@@ -241,7 +241,7 @@ fn mark_boxes(boxes: &[(IVec3, IVec3, f32)]) -> HashMap<IVec3, BlockCell> {
 /// The voxels of `leaf` above 0, as an inclusive index box; `None` when there are none.
 fn positive_box(leaf: &Leaf) -> Option<(IVec3, IVec3)> {
     let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
-    for (slot, &v) in leaf.values.iter().enumerate() {
+    for (slot, v) in leaf.values.to_array().into_iter().enumerate() {
         if v > 0.0 {
             let ijk = leaf.origin + slot_offset(slot);
             lo = lo.min(ijk);

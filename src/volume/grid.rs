@@ -6,6 +6,8 @@
 //! density is trilinear; inactive voxels and everything outside the tree take the background value.
 
 use glam::{DVec3, IVec3, Vec3};
+use half::f16;
+use half::slice::HalfFloatSliceExt;
 use hashbrown::HashMap;
 
 use crate::math::ray::Ray;
@@ -100,9 +102,71 @@ impl Transform {
 pub struct Leaf {
     pub origin: IVec3,
     pub mask: [u64; 8],
-    pub values: [f32; LEAF_VOXELS],
+    pub values: LeafValues,
     /// Largest value of the leaf (active voxels; the background where none is active).
     pub max: f32,
+}
+
+/// A leaf's values: f32, or f16 where that is all the source holds (a cache that stores its
+/// density as f16), so a render of a big cloud holds its density in half the memory, every value
+/// the same f32 it decodes to.
+#[derive(Clone)]
+pub enum LeafValues {
+    F32(Box<[f32; LEAF_VOXELS]>),
+    F16(Box<[f16; LEAF_VOXELS]>),
+}
+
+impl LeafValues {
+    /// The value in `slot`. A single f16 converts in software, inlined: the CPU's conversion,
+    /// chosen at run time, costs a call per value.
+    #[inline]
+    pub fn get(&self, slot: usize) -> f32 {
+        match self {
+            LeafValues::F32(v) => v[slot],
+            LeafValues::F16(v) => v[slot].to_f32_const(),
+        }
+    }
+
+    /// Every value, in slot order.
+    pub fn to_array(&self) -> [f32; LEAF_VOXELS] {
+        let mut out = [0.0; LEAF_VOXELS];
+        self.copy_to(0, &mut out);
+        out
+    }
+
+    /// The values of slots `start..start + out.len()`, written to `out`.
+    #[inline]
+    pub fn copy_to(&self, start: usize, out: &mut [f32]) {
+        match self {
+            LeafValues::F32(v) => out.copy_from_slice(&v[start..start + out.len()]),
+            LeafValues::F16(v) => v[start..start + out.len()].convert_to_f32_slice(out),
+        }
+    }
+
+    /// The values at `base + offsets[n]`.
+    #[inline]
+    pub fn gather<const N: usize>(&self, base: usize, offsets: &[usize; N]) -> [f32; N] {
+        match self {
+            LeafValues::F32(v) => std::array::from_fn(|n| v[base + offsets[n]]),
+            LeafValues::F16(v) => std::array::from_fn(|n| v[base + offsets[n]].to_f32_const()),
+        }
+    }
+
+    /// The f32 values, to change in place (`None`: held as f16).
+    pub fn f32_mut(&mut self) -> Option<&mut [f32; LEAF_VOXELS]> {
+        match self {
+            LeafValues::F32(v) => Some(v),
+            LeafValues::F16(_) => None,
+        }
+    }
+
+    /// Bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        match self {
+            LeafValues::F32(_) => std::mem::size_of::<[f32; LEAF_VOXELS]>(),
+            LeafValues::F16(_) => std::mem::size_of::<[f16; LEAF_VOXELS]>(),
+        }
+    }
 }
 
 impl Leaf {
@@ -128,8 +192,31 @@ impl Leaf {
         Leaf {
             origin,
             mask,
-            values,
+            values: LeafValues::F32(Box::new(values)),
             max,
+        }
+    }
+
+    /// This leaf with its values held as f16 when each is one exactly (else as it is): the same
+    /// values in half the memory.
+    pub fn into_f16(self) -> Leaf {
+        let LeafValues::F32(v) = &self.values else {
+            return self;
+        };
+        let mut half = [f16::ZERO; LEAF_VOXELS];
+        half.convert_from_f32_slice(&v[..]);
+        let mut back = [0.0f32; LEAF_VOXELS];
+        half.convert_to_f32_slice(&mut back);
+        if back
+            .iter()
+            .zip(v.iter())
+            .any(|(b, f)| b.to_bits() != f.to_bits())
+        {
+            return self;
+        }
+        Leaf {
+            values: LeafValues::F16(Box::new(half)),
+            ..self
         }
     }
 
@@ -297,7 +384,7 @@ impl SparseGrid {
             .map(|leaf| {
                 let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
                 for slot in 0..LEAF_VOXELS {
-                    if leaf.is_active(slot) && keep(leaf.values[slot]) {
+                    if leaf.is_active(slot) && keep(leaf.values.get(slot)) {
                         let p = leaf.origin + slot_offset(slot);
                         lo = lo.min(p);
                         hi = hi.max(p);
@@ -339,7 +426,7 @@ impl SparseGrid {
                     (f32::INFINITY, f32::NEG_INFINITY, 0.0f64, false);
                 for slot in 0..LEAF_VOXELS {
                     if leaf.is_active(slot) {
-                        let v = leaf.values[slot];
+                        let v = leaf.values.get(slot);
                         min = min.min(v);
                         max = max.max(v);
                         sum += v as f64;
@@ -374,6 +461,11 @@ impl SparseGrid {
             m.capacity() * (std::mem::size_of::<(IVec3, V)>() + 1)
         }
         self.leaves.capacity() * std::mem::size_of::<Leaf>()
+            + self
+                .leaves
+                .iter()
+                .map(|l| l.values.memory_bytes())
+                .sum::<usize>()
             + map_bytes(&self.leaf_index)
             + self.tiles.iter().map(map_bytes).sum::<usize>()
             + map_bytes(&self.node_max)
@@ -399,7 +491,7 @@ impl SparseGrid {
     /// The value at voxel `ijk` (background where nothing active is).
     pub fn value(&self, ijk: IVec3) -> f32 {
         match self.block(ijk >> LEAF_LOG2) {
-            Block::Leaf(leaf) => leaf.values[Leaf::slot(ijk)],
+            Block::Leaf(leaf) => leaf.values.get(Leaf::slot(ijk)),
             Block::Constant(v) => v,
         }
     }

@@ -114,7 +114,7 @@ pub fn coarsen(fine: &SparseGrid) -> SparseGrid {
             for leaf in leaves {
                 fill(leaf.origin, &|o| {
                     let s = Leaf::slot(o);
-                    (leaf.values[s], leaf.is_active(s))
+                    (leaf.values.get(s), leaf.is_active(s))
                 });
             }
             for &(tile, value) in tiles {
@@ -129,9 +129,13 @@ pub fn coarsen(fine: &SparseGrid) -> SparseGrid {
         // A block wholly active at one value (the inside of a uniform region) stays a tile, so a
         // tiled volume keeps its tiles at every level.
         let uniform = leaf.mask.iter().all(|&m| m == u64::MAX)
-            && leaf.values.iter().all(|&v| v == leaf.values[0]);
+            && leaf
+                .values
+                .to_array()
+                .iter()
+                .all(|&v| v == leaf.values.get(0));
         match uniform {
-            true => coarse.insert_tile(TileLevel::Block, leaf.origin, leaf.values[0]),
+            true => coarse.insert_tile(TileLevel::Block, leaf.origin, leaf.values.get(0)),
             false => coarse.push_leaf(leaf),
         }
     }

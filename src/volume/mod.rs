@@ -47,7 +47,7 @@ pub fn load_density(path: &Path, grid: Option<&str>) -> Result<Density> {
     let mut negative = 0u64;
     let mut bad = 0u64;
     for leaf in grid.leaves_mut() {
-        for v in leaf.values.iter_mut() {
+        for v in leaf.values.f32_mut().into_iter().flatten() {
             if !v.is_finite() {
                 bad += 1;
             } else if *v < 0.0 {

@@ -11,6 +11,19 @@ use crate::math::floor::floor_split;
 
 use crate::volume::grid::{corner, trilinear, Block, Leaf, SparseGrid, LEAF_DIM, LEAF_LOG2};
 
+/// Offset of corner `n` (bits x, y, z as [`corner`]) from a cell's lower corner in a leaf.
+const LEAF_CORNERS: [usize; 8] = {
+    const DX: usize = (LEAF_DIM * LEAF_DIM) as usize;
+    const DY: usize = LEAF_DIM as usize;
+    let mut o = [0; 8];
+    let mut n = 0;
+    while n < 8 {
+        o[n] = (n >> 2) * DX + ((n >> 1) & 1) * DY + (n & 1);
+        n += 1;
+    }
+    o
+};
+
 /// One ray's sampler; cheap to create, not shared between threads.
 pub struct BlockSampler<'a> {
     grid: &'a SparseGrid,
@@ -52,21 +65,14 @@ impl<'a> BlockSampler<'a> {
         let local = i0 & (LEAF_DIM - 1);
         if local.max_element() < LEAF_DIM - 1 {
             match self.block(IVec3::ZERO) {
-                Block::Leaf(leaf) => {
-                    let s = Leaf::slot(i0);
-                    const DX: usize = (LEAF_DIM * LEAF_DIM) as usize;
-                    const DY: usize = LEAF_DIM as usize;
-                    for (n, v) in c.iter_mut().enumerate() {
-                        *v = leaf.values[s + (n >> 2) * DX + ((n >> 1) & 1) * DY + (n & 1)];
-                    }
-                }
+                Block::Leaf(leaf) => c = leaf.values.gather(Leaf::slot(i0), &LEAF_CORNERS),
                 Block::Constant(v) => return v,
             }
         } else {
             for (n, v) in c.iter_mut().enumerate() {
                 let ijk = i0 + corner(n);
                 *v = match self.block((ijk >> LEAF_LOG2) - key) {
-                    Block::Leaf(leaf) => leaf.values[Leaf::slot(ijk)],
+                    Block::Leaf(leaf) => leaf.values.get(Leaf::slot(ijk)),
                     Block::Constant(value) => value,
                 };
             }
@@ -80,6 +86,36 @@ mod tests {
     use super::*;
     use crate::volume::grid::{TileLevel, LEAF_VOXELS};
     use crate::volume::Transform;
+
+    #[test]
+    fn f16_leaves_sample_as_their_f32_values_in_half_the_memory() {
+        // Values f16 holds exactly (quarters) become f16 leaves; a value it cannot hold (0.1)
+        // keeps its leaf f32. Every sample is the f32 grid's, bit for bit.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        let values = std::array::from_fn(|s| (s % 13) as f32 * 0.25);
+        g.insert_leaf(IVec3::ZERO, [u64::MAX; 8], values);
+        g.insert_leaf(IVec3::new(8, 0, 0), [0xf0f0_f0f0_f0f0_f0f0; 8], values);
+        let mut inexact = values;
+        inexact[7] = 0.1;
+        g.insert_leaf(IVec3::new(0, 8, 0), [u64::MAX; 8], inexact);
+        let mut h = g.clone();
+        for leaf in h.leaves_mut() {
+            *leaf = leaf.clone().into_f16();
+        }
+        let held: Vec<usize> = h.leaves().iter().map(|l| l.values.memory_bytes()).collect();
+        assert_eq!(held, [1024, 1024, 2048]);
+        assert!(h.memory_bytes() < g.memory_bytes());
+        let (mut a, mut b) = (BlockSampler::new(&g), BlockSampler::new(&h));
+        for n in 0..20_000 {
+            let t = n as f32 * 0.011;
+            let p = Vec3::new(
+                8.0 + 9.0 * t.sin(),
+                8.0 + 9.0 * (1.3 * t).cos(),
+                4.0 + 5.0 * t.cos(),
+            );
+            assert_eq!(a.sample(p).to_bits(), b.sample(p).to_bits(), "{p}");
+        }
+    }
 
     #[test]
     fn bit_identical_to_sample_index() {

@@ -55,7 +55,7 @@ impl Block<'_> {
     /// The density of voxel `slot`, 0 where it is inactive or not positive.
     fn active_density(&self, slot: usize) -> f32 {
         match self {
-            Block::Leaf(l) if l.is_active(slot) => l.values[slot].max(0.0),
+            Block::Leaf(l) if l.is_active(slot) => l.values.get(slot).max(0.0),
             Block::Leaf(_) => 0.0,
             Block::Tile(_, v) => v.max(0.0),
         }
