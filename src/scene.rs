@@ -19,8 +19,9 @@ use crate::render::{
 };
 use crate::transfer::cache::{self, Cache, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
+use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
 use crate::transfer::packing::Precision;
-use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer};
+use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLight};
 use crate::volume::{load_density, DensityField};
 
 /// How to bake, validated: the grid to read, the medium, the bake settings and the cache's form.
@@ -316,6 +317,22 @@ impl Scene {
         self.field.has_bricks()
             || self.light_plan(lighting) > 0
             || rays >= BRICKED_RAYS_PER_LEAF * leaves
+    }
+
+    /// Bytes relighting the transfer under `lighting` makes beside what the transfer holds: held
+    /// coefficients relight into two parts and then their records (the parts beside the records
+    /// while they combine); a transfer relit as read lends its records, copied only for a sun's
+    /// multiple scattering to join them.
+    pub fn relight_plan(&self, lighting: &Lighting) -> u64 {
+        let Some(t) = &self.transfer else {
+            return 0;
+        };
+        let records = t.layout.len() as u64 * RADIANCE_BYTES_PER_TRANSFER_VOXEL;
+        match (&t.light, t.lattice.is_some() && !lighting.suns.is_empty()) {
+            (TransferLight::Coefficients { .. }, _) => 2 * records,
+            (TransferLight::Relit(_), true) => records,
+            (TransferLight::Relit(_), false) => 0,
+        }
     }
 
     /// The suns' share of [`Scene::light_plan`].

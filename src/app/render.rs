@@ -542,7 +542,7 @@ fn transfer(
     let estimate = RenderEstimate::new(
         &scene.field,
         scene.render_bricks(view.camera, view.spp, view.lighting),
-        scene.transfer.as_ref().map_or(0, |t| t.layout.len()),
+        scene.relight_plan(view.lighting),
         scene.transfer.as_ref().map_or(0, |t| t.coefficient_bytes()),
         scene.light_plan(view.lighting),
         scene.sun_solve_plan(view.lighting),

@@ -176,16 +176,16 @@ impl<'a> InScatter for SunRadiance<'a> {
 /// transfer that is V times a smooth field is reproduced at the density's resolution.
 pub struct TransferRadiance<'a> {
     inv_k: f32,
-    /// Per slot, direct RGB, indirect RGB and the fitted V — one record, one cache line read per
-    /// corner — and a last all-zero record that missing corners point at, so a corner needs no
-    /// test.
-    nodes: Vec<[f32; 7]>,
+    /// Per slot, direct and indirect RGB, and a last all-zero record that missing corners point
+    /// at, so a corner needs no test ([`Radiance`]).
+    nodes: &'a [[f32; 6]],
     /// Where each transfer voxel's record is: a ray entering an interpolation cell finds its
     /// eight corners' records there ([`TransferLayout::cell`]).
     layout: &'a TransferLayout,
     /// The all-zero record missing corners point at.
     missing: u32,
-    visibility: Option<&'a Visibility>,
+    /// The density's V and its fitted value per slot.
+    visibility: Option<(&'a Visibility, &'a [f32])>,
 }
 
 /// Smallest interpolated V the direct light is reshaped by: below it the node values are too
@@ -199,28 +199,15 @@ impl<'a> TransferRadiance<'a> {
     /// `visibility`: the density's V with its fitted value per slot (`None`: plain interpolation).
     pub fn new(
         layout: &'a TransferLayout,
-        radiance: &Radiance,
-        visibility: Option<(&'a Visibility, &[f32])>,
+        radiance: &'a Radiance,
+        visibility: Option<(&'a Visibility, &'a [f32])>,
     ) -> Self {
-        let mut nodes: Vec<[f32; 7]> = radiance
-            .direct
-            .iter()
-            .zip(&radiance.indirect)
-            .enumerate()
-            .map(|(s, (d, i))| {
-                let v = visibility.map_or(0.0, |(_, nv)| nv[s]);
-                [d[0], d[1], d[2], i[0], i[1], i[2], v]
-            })
-            .collect();
-        // A missing corner's data reads as zero; the apron makes that rare inside the medium.
-        let missing = nodes.len() as u32;
-        nodes.push([0.0; 7]);
         TransferRadiance {
             inv_k: 1.0 / layout.k as f32,
-            nodes,
+            nodes: &radiance.nodes,
             layout,
-            missing,
-            visibility: visibility.map(|(v, _)| v),
+            missing: radiance.len() as u32,
+            visibility,
         }
     }
 
@@ -263,7 +250,7 @@ impl<'a> InScatter for TransferRadiance<'a> {
             direct: [0.0; 8],
             indirect: [0.0; 8],
             radiance: [[0.0; 3]; 2],
-            visibility: self.visibility.map(Visibility::sampler),
+            visibility: self.visibility.map(|(v, _)| v.sampler()),
         }
     }
 
@@ -285,11 +272,14 @@ impl<'a> InScatter for TransferRadiance<'a> {
             w[n + 4] = f.x * yz;
         }
         let mut cd = c;
-        if let (Some(sampler), Some(slots)) = (sum.visibility.as_mut(), sum.slots) {
+        if let (Some(sampler), Some(slots), Some((_, nodes_v))) =
+            (sum.visibility.as_mut(), sum.slots, self.visibility)
+        {
+            // The missing corner's V is 0, as its light.
             let fitted: f32 = w
                 .iter()
                 .zip(slots)
-                .map(|(w, s)| w * self.nodes[s as usize][6])
+                .map(|(w, s)| w * nodes_v.get(s as usize).copied().unwrap_or(0.0))
                 .sum();
             if fitted > MIN_FITTED_VISIBILITY && rho > 0.0 {
                 let fine = sampler.sample(p) / rho;

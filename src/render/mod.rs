@@ -167,8 +167,8 @@ pub fn render_volume<R>(
     // scattering is marched from its shadow volume.
     for (light, sun) in suns.iter().zip(&lighting.suns) {
         if let Some(fluence) = &light.multiple {
-            for (node, f) in radiance.to_mut().indirect.iter_mut().zip(fluence) {
-                for (c, e) in node.iter_mut().zip(sun.irradiance) {
+            for (node, f) in radiance.to_mut().nodes.iter_mut().zip(fluence) {
+                for (c, e) in node[3..].iter_mut().zip(sun.irradiance) {
                     *c += PHASE * f * e;
                 }
             }
@@ -187,8 +187,6 @@ pub fn render_volume<R>(
                 .map(|(light, sun)| (&light.shadow, sun.irradiance)),
         ),
     );
-    // The march reads the nodes' records, which hold their own copy.
-    drop(radiance);
     let relight_time = t.elapsed();
     let scene = Scene::new(field, transfer.medium, &source, background);
     let (out, stats, march_time) = march::stream(&scene, camera, settings, progress, consume);

@@ -17,16 +17,47 @@ const SLOTS_PER_TASK: usize = 1024;
 /// Independent partial sums per dot product: eight f32 lanes fill one AVX or two SSE registers.
 const LANES: usize = 8;
 
-/// RGB in-scattered radiance per transfer voxel (slot order of the transfer layout).
+/// RGB in-scattered radiance per transfer voxel, in slot order of the transfer layout: one record
+/// per slot, direct then indirect — what the march reads of a corner, in one cache line — and a
+/// last all-zero record that the march's missing corners point at.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Radiance {
-    pub direct: Vec<[f32; 3]>,
-    pub indirect: Vec<[f32; 3]>,
+    pub nodes: Vec<[f32; 6]>,
 }
 
 impl Radiance {
+    /// From each slot's direct and indirect parts.
+    pub fn new(direct: &[[f32; 3]], indirect: &[[f32; 3]]) -> Radiance {
+        let records = direct.iter().zip(indirect);
+        Radiance {
+            nodes: records
+                .map(|(d, i)| [d[0], d[1], d[2], i[0], i[1], i[2]])
+                .chain([[0.0; 6]])
+                .collect(),
+        }
+    }
+
+    /// Slots (the last, all-zero record not counted).
+    pub fn len(&self) -> usize {
+        self.nodes.len() - 1
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn direct(&self, slot: usize) -> [f32; 3] {
+        let n = &self.nodes[slot];
+        [n[0], n[1], n[2]]
+    }
+
+    pub fn indirect(&self, slot: usize) -> [f32; 3] {
+        let n = &self.nodes[slot];
+        [n[3], n[4], n[5]]
+    }
+
     pub fn memory_bytes(&self) -> usize {
-        (self.direct.capacity() + self.indirect.capacity()) * std::mem::size_of::<[f32; 3]>()
+        self.nodes.capacity() * std::mem::size_of::<[f32; 6]>()
     }
 }
 
@@ -145,7 +176,7 @@ fn clamped(mut direct: Vec<[f32; 3]>, mut indirect: Vec<[f32; 3]>) -> Radiance {
             i[c] = sum - d[c];
         }
     }
-    Radiance { direct, indirect }
+    Radiance::new(&direct, &indirect)
 }
 
 /// Relights a transfer's coefficients under several maps as they stream in, a batch of voxels at
@@ -236,12 +267,12 @@ mod tests {
         let mut env = vec![[0.0f32; 3]; 9];
         env[0] = c.map(|v| v * sqrt_4pi);
         let r = relight(&t, &env).unwrap();
-        assert_eq!(r.direct.len(), t.layout.len());
-        for (d, i) in r.direct.iter().zip(&r.indirect) {
+        assert_eq!(r.len(), t.layout.len());
+        for (d, i) in (0..r.len()).map(|s| (r.direct(s), r.indirect(s))) {
             for ch in 0..3 {
                 assert!((d[ch] - c[ch]).abs() < 1e-6 * c[ch]);
             }
-            assert_eq!(*i, [0.0; 3]);
+            assert_eq!(i, [0.0; 3]);
         }
     }
 
@@ -261,7 +292,10 @@ mod tests {
         let env = vec![[4.0, 8.0, 12.0]; 4];
         let r = relight(&t, &env).unwrap();
         let inv = 1.0 / (4.0 * std::f32::consts::PI);
-        for (slot, (d, i)) in r.direct.iter().zip(&r.indirect).enumerate() {
+        for (slot, (d, i)) in (0..r.len())
+            .map(|s| (r.direct(s), r.indirect(s)))
+            .enumerate()
+        {
             let (want_d, want_i) = if slot % 2 == 0 {
                 ([8.0, 16.0, 24.0], [4.0, 8.0, 12.0])
             } else {

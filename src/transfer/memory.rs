@@ -265,9 +265,8 @@ impl BakePlan {
     }
 }
 
-/// Bytes per transfer voxel a render holds beside T_ri and F_ms: the relit direct and indirect
-/// RGB (24) and the march's node records (7 f32, 28).
-const RENDER_BYTES_PER_TRANSFER_VOXEL: u64 = 24 + 28;
+/// Bytes per transfer voxel of relit radiance: direct and indirect RGB, f32.
+pub const RADIANCE_BYTES_PER_TRANSFER_VOXEL: u64 = 24;
 /// Bytes per pixel of a frame: RGBA, the direct and indirect RGB layers and depth, f32 each.
 const FRAME_BYTES_PER_PIXEL: u64 = 4 * (4 + 3 + 3 + 1);
 /// Bands of rows an EXR write holds at once: the one being rendered, the one being compressed,
@@ -303,9 +302,10 @@ pub fn image_bytes(width: u32, height: u32, png: bool) -> u64 {
 pub struct RenderEstimate {
     /// The density and its accelerators.
     pub volume: u64,
-    /// T_ri and F_ms as held and what relighting and the march keep per transfer voxel.
+    /// T_ri and F_ms as held (or the radiance relit from them as read) and what relighting
+    /// makes beside them.
     pub transfer: u64,
-    /// The march's share of `transfer`: held only after the suns are solved.
+    /// The relight's share of `transfer`: held only after the suns are solved.
     march: u64,
     /// The suns' shadow volumes and fluences and a single-scattering transfer's visibility, where
     /// not kept from an earlier render.
@@ -318,24 +318,24 @@ pub struct RenderEstimate {
 
 impl RenderEstimate {
     /// `bricks`: whether the render holds the density's bricks
-    /// ([`crate::scene::Scene::render_bricks`]); `coefficient_bytes`: T_ri and F_ms as held;
+    /// ([`crate::scene::Scene::render_bricks`]); `relight`: what relighting makes
+    /// ([`crate::scene::Scene::relight_plan`]); `coefficient_bytes`: T_ri and F_ms as held;
     /// `light`: [`crate::scene::Scene::light_plan`]; `solve`: [`sun_solve_bytes`] when a new sun
     /// will be solved; `image`: [`image_bytes`].
     pub fn new(
         field: &DensityField,
         bricks: bool,
-        transfer_voxels: usize,
+        relight: u64,
         coefficient_bytes: usize,
         light: u64,
         solve: u64,
         image: u64,
     ) -> RenderEstimate {
-        let march = transfer_voxels as u64 * RENDER_BYTES_PER_TRANSFER_VOXEL;
         RenderEstimate {
             volume: (field.grid.memory_bytes() + if bricks { field.brick_bytes() } else { 0 })
                 as u64,
-            transfer: coefficient_bytes as u64 + march,
-            march,
+            transfer: coefficient_bytes as u64 + relight,
+            march: relight,
             light,
             solve,
             image,

@@ -347,20 +347,18 @@ fn transfer_radiance_interpolates_slots() {
     let g = unit_tile(Transform::default(), 1.0);
     let layout = TransferLayout::build(&g, 6);
     // Direct: red = the transfer voxel's x, green 1; one plane of voxels (x = 0) unlit.
-    let radiance = Radiance {
-        direct: layout
-            .voxels()
-            .iter()
-            .map(|v| {
-                if v.x == 0 {
-                    [0.0; 3]
-                } else {
-                    [v.x as f32, 1.0, 0.0]
-                }
-            })
-            .collect(),
-        indirect: vec![[0.25; 3]; layout.len()],
-    };
+    let direct: Vec<[f32; 3]> = layout
+        .voxels()
+        .iter()
+        .map(|v| {
+            if v.x == 0 {
+                [0.0; 3]
+            } else {
+                [v.x as f32, 1.0, 0.0]
+            }
+        })
+        .collect();
+    let radiance = Radiance::new(&direct, &vec![[0.25; 3]; layout.len()]);
     let src = TransferRadiance::new(&layout, &radiance, None);
     let at = |q: Vec3| {
         let mut sum = src.start();
@@ -372,7 +370,7 @@ fn transfer_radiance_interpolates_slots() {
         layout
             .corners(q)
             .iter()
-            .map(|(s, w)| s.map_or(0.0, |s| w * radiance.direct[s][0]))
+            .map(|(s, w)| s.map_or(0.0, |s| w * radiance.direct(s)[0]))
             .sum()
     };
     // Between x = 5 and 6, next to the unlit plane, and at a corner.
@@ -428,10 +426,8 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
     let visibility = Visibility::build(&field, 0.4);
     let fitted = crate::transfer::fitted_field(&field.grid, &layout, &visibility.weighted);
     let c = 3.0;
-    let radiance = Radiance {
-        direct: fitted.iter().map(|v| [c * v; 3]).collect(),
-        indirect: vec![[0.5; 3]; layout.len()],
-    };
+    let direct: Vec<[f32; 3]> = fitted.iter().map(|v| [c * v; 3]).collect();
+    let radiance = Radiance::new(&direct, &vec![[0.5; 3]; layout.len()]);
     let shaped = TransferRadiance::new(&layout, &radiance, Some((&visibility, &fitted)));
     let plain = TransferRadiance::new(&layout, &radiance, None);
     let at = |src: &TransferRadiance, q: Vec3| {
