@@ -543,7 +543,10 @@ fn transfer(
         &scene.field,
         scene.render_bricks(view.camera, view.spp, view.lighting),
         scene.relight_plan(view.lighting),
-        scene.transfer.as_ref().map_or(0, |t| t.coefficient_bytes()),
+        scene
+            .transfer
+            .as_ref()
+            .map_or(0, |t| t.layout.memory_bytes() + t.coefficient_bytes()),
         scene.light_plan(view.lighting),
         scene.sun_solve_plan(view.lighting),
         memory::image_bytes(view.camera.width, view.camera.height, view.png),

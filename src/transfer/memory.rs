@@ -302,7 +302,7 @@ pub fn image_bytes(width: u32, height: u32, png: bool) -> u64 {
 pub struct RenderEstimate {
     /// The density and its accelerators.
     pub volume: u64,
-    /// T_ri and F_ms as held (or the radiance relit from them as read) and what relighting
+    /// The transfer's layout, T_ri and F_ms as held (or the radiance relit from them as read) and what relighting
     /// makes beside them.
     pub transfer: u64,
     /// The relight's share of `transfer`: held only after the suns are solved.
@@ -332,8 +332,9 @@ impl RenderEstimate {
         image: u64,
     ) -> RenderEstimate {
         RenderEstimate {
-            volume: (field.grid.memory_bytes() + if bricks { field.brick_bytes() } else { 0 })
-                as u64,
+            volume: (field.grid.memory_bytes()
+                + field.occupancy.memory_bytes()
+                + if bricks { field.brick_bytes() } else { 0 }) as u64,
             transfer: coefficient_bytes as u64 + relight,
             march: relight,
             light,

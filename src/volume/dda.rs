@@ -147,6 +147,19 @@ pub struct Occupancy {
     bounds: Option<(DVec3, DVec3)>,
 }
 
+impl Occupancy {
+    /// Bytes held: the maps (key, value and a control byte per slot) and the cells.
+    pub fn memory_bytes(&self) -> usize {
+        fn map_bytes<V>(m: &HashMap<IVec3, V>) -> usize {
+            m.capacity() * (std::mem::size_of::<(IVec3, V)>() + 1)
+        }
+        map_bytes(&self.nodes)
+            + map_bytes(&self.roots)
+            + self.partial.capacity() * std::mem::size_of::<NodeBlocks>()
+            + self.cells.capacity() * std::mem::size_of::<BlockCell>()
+    }
+}
+
 fn raise(map: &mut HashMap<IVec3, f32>, key: IVec3, value: f32) {
     let m = map.entry(key).or_insert(value);
     *m = m.max(value);
