@@ -61,6 +61,11 @@ pub struct Bricks {
     /// is uniform without an entry of its own: a node tile holds 4096 blocks, and sending their
     /// samples to the fallback sampler doubled the T_ri phase of a tiled 300³ block.
     node_tiles: HashMap<IVec3, f32>,
+    /// The value of every block without an entry, when that is known: a block within one of a
+    /// leaf or a block tile has an entry, so the window of one without lies in node tiles, root
+    /// tiles or the background; with no node or root tile it is the background alone, and empty
+    /// space costs a sample no lookup (`None`: the grid has such tiles, or there are no bricks).
+    outside: Option<f32>,
 }
 
 impl Bricks {
@@ -70,6 +75,7 @@ impl Bricks {
             entries: HashMap::new(),
             values: Vec::new(),
             node_tiles: HashMap::new(),
+            outside: None,
         }
     }
 
@@ -99,10 +105,14 @@ impl Bricks {
             .tiles(TileLevel::Node)
             .map(|(origin, v)| (origin >> TileLevel::Node.log2() as i32, v))
             .collect();
+        let large_tiles = [TileLevel::Node, TileLevel::Root]
+            .iter()
+            .any(|&level| grid.tiles(level).next().is_some());
         Bricks {
             entries,
             values,
             node_tiles,
+            outside: (!large_tiles).then_some(grid.background),
         }
     }
 
@@ -264,8 +274,14 @@ impl<'a> BrickSampler<'a> {
     #[cold]
     #[inline(never)]
     fn sample_fallback(&mut self, p: Vec3) -> f32 {
-        // A block inside a node tile becomes a uniform entry for the rest of its samples.
-        if let Some(entry @ Entry::Uniform(v)) = self.bricks.in_node_tile(self.key) {
+        // A block of the background, or inside a node tile, becomes a uniform entry for the rest
+        // of its samples.
+        let uniform = self
+            .bricks
+            .outside
+            .map(Entry::Uniform)
+            .or_else(|| self.bricks.in_node_tile(self.key));
+        if let Some(entry @ Entry::Uniform(v)) = uniform {
             self.entry = Some(entry);
             return v;
         }
@@ -291,9 +307,32 @@ mod tests {
     #[test]
     fn bit_identical_to_sample_index() {
         // Leaves next to each other, to an 8³ tile, to a 128³ tile and to empty space; a leaf with
-        // inactive voxels; a tile with a different value beside another tile.
-        let mut g = SparseGrid::new(Transform::default(), 0.0);
-        g.insert_tile(TileLevel::Node, IVec3::new(-128, 0, 0), 0.5);
+        // inactive voxels; a tile with a different value beside another tile. Without the 128³
+        // tile, empty space is the background (not 0 here) with no lookup.
+        for node_tile in [true, false] {
+            let background = if node_tile { 0.0 } else { 0.125 };
+            let g = grid_for_identity(node_tile, background);
+            let bricks = Bricks::build(&g);
+            assert_eq!(bricks.outside, (!node_tile).then_some(background));
+            assert!(bricks.memory_bytes() > bricks.values.len() * BRICK_VOXELS * 4);
+            assert!(!bricks.values.is_empty());
+            let mut sampler = BrickSampler::new(&bricks, &g);
+            // A wandering walk that crosses block faces, edges and corners, forwards and backwards.
+            let mut p = Vec3::new(-3.0, -1.5, -2.0);
+            for n in 0..40_000 {
+                let a = n as f32 * 0.013;
+                p += Vec3::new(a.sin(), (1.7 * a).cos(), (0.6 * a).sin()) * 0.37;
+                p = p.clamp(Vec3::splat(-20.0), Vec3::splat(30.0));
+                assert_same(&mut sampler, &g, p);
+            }
+        }
+    }
+
+    fn grid_for_identity(node_tile: bool, background: f32) -> SparseGrid {
+        let mut g = SparseGrid::new(Transform::default(), background);
+        if node_tile {
+            g.insert_tile(TileLevel::Node, IVec3::new(-128, 0, 0), 0.5);
+        }
         g.insert_tile(TileLevel::Block, IVec3::new(8, 0, 0), 2.0);
         g.insert_tile(TileLevel::Block, IVec3::new(8, 8, 0), 2.0);
         g.insert_tile(TileLevel::Block, IVec3::new(16, 8, 0), 3.0);
@@ -304,18 +343,7 @@ mod tests {
         g.insert_leaf(IVec3::ZERO, [u64::MAX; 8], values);
         g.insert_leaf(IVec3::new(0, 8, 0), [0xf0f0_f0f0_f0f0_f0f0; 8], values);
         g.insert_leaf(IVec3::new(-8, 0, 0), [u64::MAX; 8], values);
-        let bricks = Bricks::build(&g);
-        assert!(bricks.memory_bytes() > bricks.values.len() * BRICK_VOXELS * 4);
-        assert!(!bricks.values.is_empty());
-        let mut sampler = BrickSampler::new(&bricks, &g);
-        // A wandering walk that crosses block faces, edges and corners, forwards and backwards.
-        let mut p = Vec3::new(-3.0, -1.5, -2.0);
-        for n in 0..40_000 {
-            let a = n as f32 * 0.013;
-            p += Vec3::new(a.sin(), (1.7 * a).cos(), (0.6 * a).sin()) * 0.37;
-            p = p.clamp(Vec3::splat(-20.0), Vec3::splat(30.0));
-            assert_same(&mut sampler, &g, p);
-        }
+        g
     }
 
     #[test]
