@@ -7,6 +7,7 @@ use clap::Parser;
 mod app;
 
 fn main() -> ExitCode {
+    vscatter::io::meminfo::return_large_blocks_when_freed();
     let cli = match app::Cli::try_parse() {
         Ok(cli) => cli,
         Err(e) if !e.use_stderr() => {
