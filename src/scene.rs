@@ -300,11 +300,19 @@ impl Scene {
     /// The [`TransferShape`]'s share of [`Scene::light_plan`].
     pub fn shape_plan(&self, lighting: &Lighting) -> u64 {
         match &self.transfer {
-            Some(t) if needs_shape(t, lighting) && self.shape.lock().is_ok_and(|s| s.is_none()) => {
+            Some(t) if self.shape_to_build(lighting) => {
                 TransferShape::estimate_bytes(&self.field, t)
             }
             _ => 0,
         }
+    }
+
+    /// Whether a render under `lighting` builds a [`TransferShape`] (needed, and not kept).
+    fn shape_to_build(&self, lighting: &Lighting) -> bool {
+        self.transfer
+            .as_ref()
+            .is_some_and(|t| needs_shape(t, lighting))
+            && self.shape.lock().is_ok_and(|s| s.is_none())
     }
 
     /// Whether a render of `camera` at `spp` under `lighting` holds the density's bricks: built
@@ -315,7 +323,8 @@ impl Scene {
         let rays = camera.width as u64 * camera.height as u64 * spp as u64;
         let leaves = self.field.grid.leaf_count() as u64;
         self.field.has_bricks()
-            || self.light_plan(lighting) > 0
+            || self.new_suns(lighting) > 0
+            || self.shape_to_build(lighting)
             || rays >= BRICKED_RAYS_PER_LEAF * leaves
     }
 

@@ -304,8 +304,8 @@ pub fn image_bytes(width: u32, height: u32, png: bool) -> u64 {
 pub struct RenderEstimate {
     /// The density and its accelerators.
     pub volume: u64,
-    /// The transfer's layout, T_ri and F_ms as held (or the radiance relit from them as read) and what relighting
-    /// makes beside them.
+    /// The transfer's layout, T_ri and F_ms as held (or the radiance relit from them as read),
+    /// and what relighting makes beside them.
     pub transfer: u64,
     /// The relight's share of `transfer`: held only after the suns are solved.
     march: u64,

@@ -4,7 +4,6 @@
 
 pub mod cache;
 pub(crate) mod coefficients;
-use crate::render::relight::Radiance;
 pub use coefficients::Coefficients;
 mod fit;
 pub use fit::fitted_field;
@@ -18,6 +17,7 @@ mod tests;
 
 pub use layout::TransferLayout;
 
+use crate::render::relight::Radiance;
 use crate::volume::mip::DensityMip;
 use crate::volume::transmittance::{FarField, OpticalDepth};
 use crate::volume::{DensityField, SparseGrid};

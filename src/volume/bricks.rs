@@ -21,7 +21,9 @@ use rayon::prelude::*;
 
 use crate::math::floor::floor_split;
 use crate::volume::dense_box::DenseBox;
-use crate::volume::grid::{corner, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
+use crate::volume::grid::{
+    corner, corner_offsets, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2,
+};
 use crate::volume::sampler::BlockSampler;
 
 /// Voxels along a brick edge: a leaf plus the apron it shares with its upper neighbours.
@@ -31,15 +33,7 @@ const BRICK_VOXELS: usize = BRICK_DIM * BRICK_DIM * BRICK_DIM;
 /// One brick's values, x-major like a leaf's slots.
 type Brick = [f32; BRICK_VOXELS];
 /// Offset of corner `n` (bits x, y, z as [`corner`]) from a cell's lower corner in a brick.
-const CORNER_OFFSETS: [usize; 8] = {
-    let mut o = [0; 8];
-    let mut n = 0;
-    while n < 8 {
-        o[n] = (n >> 2) * BRICK_DIM * BRICK_DIM + ((n >> 1) & 1) * BRICK_DIM + (n & 1);
-        n += 1;
-    }
-    o
-};
+const CORNER_OFFSETS: [usize; 8] = corner_offsets(BRICK_DIM);
 
 /// Values from a cell's lower corner to its upper one in a brick (the last corner offset + 1).
 const CELL_REACH: usize = BRICK_DIM * BRICK_DIM + BRICK_DIM + 2;

@@ -536,6 +536,19 @@ pub(crate) fn corner(n: usize) -> IVec3 {
     IVec3::new((n >> 2) as i32 & 1, (n >> 1) as i32 & 1, n as i32 & 1)
 }
 
+/// Offset of corner `n` (bits x, y, z as [`corner`]) from a cell's lower corner in an x-major
+/// box of values whose rows (along z) and columns (along y) are `row` long: a leaf's slots, a
+/// brick's values.
+pub(crate) const fn corner_offsets(row: usize) -> [usize; 8] {
+    let mut o = [0; 8];
+    let mut n = 0;
+    while n < 8 {
+        o[n] = (n >> 2) * row * row + ((n >> 1) & 1) * row + (n & 1);
+        n += 1;
+    }
+    o
+}
+
 /// Trilinear blend of corner values `c` (ordered as [`corner`]) at fractions `f`.
 #[inline]
 pub(crate) fn trilinear(c: [f32; 8], f: Vec3) -> f32 {

@@ -9,20 +9,12 @@ use glam::{IVec3, Vec3};
 
 use crate::math::floor::floor_split;
 
-use crate::volume::grid::{corner, trilinear, Block, Leaf, SparseGrid, LEAF_DIM, LEAF_LOG2};
+use crate::volume::grid::{
+    corner, corner_offsets, trilinear, Block, Leaf, SparseGrid, LEAF_DIM, LEAF_LOG2,
+};
 
 /// Offset of corner `n` (bits x, y, z as [`corner`]) from a cell's lower corner in a leaf.
-const LEAF_CORNERS: [usize; 8] = {
-    const DX: usize = (LEAF_DIM * LEAF_DIM) as usize;
-    const DY: usize = LEAF_DIM as usize;
-    let mut o = [0; 8];
-    let mut n = 0;
-    while n < 8 {
-        o[n] = (n >> 2) * DX + ((n >> 1) & 1) * DY + (n & 1);
-        n += 1;
-    }
-    o
-};
+const LEAF_CORNERS: [usize; 8] = corner_offsets(LEAF_DIM as usize);
 
 /// One ray's sampler; cheap to create, not shared between threads.
 pub struct BlockSampler<'a> {
