@@ -8,6 +8,13 @@
 //! (`--reference2`, another `--seed`), the per-pixel noise variance is σ² = mean((b₁−b₂)²)/2; the
 //! comparison is then against their mean (noise σ²/2), and the noise's share is subtracted:
 //! error² = mean((a − (b₁+b₂)/2)²) − σ²/2, exact in expectation when a is deterministic.
+//!
+//! **Per pixel.** RMSE can hide a few badly wrong pixels (a shadow edge one voxel off, a bright
+//! silhouette). The *lit* pixels are the volume pixels whose reference brightness (mean of RGB)
+//! exceeds [`LIT_FRACTION`] of the mean: below that a relative difference is mostly the
+//! reference's noise over near-zero light. For each, |a − b|/b of the brightness; the share within
+//! [`PIXEL_TOLERANCE`] and the 99th percentile are reported. Noise cannot be subtracted pixel by
+//! pixel, so these are upper bounds: the reference must be much less noisy than the tolerance.
 
 use std::path::Path;
 
@@ -19,6 +26,12 @@ use crate::io::image::{read_exr_rgba, ImageBuf};
 pub const VOLUME_ALPHA: f32 = 0.01;
 /// Relative difference shown as full red (a above b) or full blue (a below b) by `--diff`.
 const DIFF_FULL_SCALE: f32 = 0.25;
+/// A volume pixel is lit when its reference brightness is above this fraction of the mean.
+pub const LIT_FRACTION: f64 = 0.1;
+/// The per-pixel relative difference a lit pixel may have to count as matching.
+pub const PIXEL_TOLERANCE: f64 = 0.1;
+/// The percentile of lit pixels' relative differences reported.
+const PIXEL_PERCENTILE: f64 = 0.99;
 
 /// The figures of one comparison.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
@@ -35,6 +48,12 @@ pub struct Comparison {
     pub reference_noise: f64,
     /// mean(a)/mean(b) − 1: the overall bias, which RMSE alone hides.
     pub relative_bias: f64,
+    /// Volume pixels brighter than [`LIT_FRACTION`] of the reference's mean.
+    pub lit_pixels: usize,
+    /// The share of lit pixels within [`PIXEL_TOLERANCE`] of the reference.
+    pub lit_within_tolerance: f64,
+    /// The 99th percentile of the lit pixels' relative differences.
+    pub lit_p99_difference: f64,
 }
 
 pub type Rgba = Vec<[f32; 4]>;
@@ -56,6 +75,8 @@ pub fn read(path: &Path) -> Result<(usize, usize, Rgba)> {
 /// Compares `a` with the reference `b` (or the mean of `b` and `b2`), all of one size.
 pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Option<Comparison> {
     let (mut n, mut sum_a, mut sum_b, mut err2, mut noise2) = (0usize, 0.0, 0.0, 0.0, 0.0);
+    // Per volume pixel: (reference brightness, image brightness).
+    let mut brightness: Vec<(f64, f64)> = Vec::new();
     for (i, (pa, pb)) in a.iter().zip(b).enumerate() {
         let pb2 = b2.map(|r| r[i]);
         let alpha = pa[3].max(pb[3]).max(pb2.map_or(0.0, |p| p[3]));
@@ -63,6 +84,7 @@ pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Optio
             continue;
         }
         n += 1;
+        let (mut pixel_a, mut pixel_b) = (0.0, 0.0);
         for c in 0..3 {
             let reference = match pb2 {
                 Some(p2) => {
@@ -73,8 +95,11 @@ pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Optio
             };
             sum_a += pa[c] as f64;
             sum_b += reference;
+            pixel_a += pa[c] as f64 / 3.0;
+            pixel_b += reference / 3.0;
             err2 += (pa[c] as f64 - reference).powi(2);
         }
+        brightness.push((pixel_b, pixel_a));
     }
     if n == 0 || sum_b <= 0.0 {
         return None;
@@ -84,6 +109,17 @@ pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Optio
     let (err2, noise2) = (err2 / count, noise2 / count);
     // The averaged reference carries half the single-reference noise variance.
     let averaged_noise2 = noise2 / 2.0;
+    let mut lit: Vec<f64> = brightness
+        .iter()
+        .filter(|(b, _)| *b > LIT_FRACTION * mean_b)
+        .map(|(b, a)| (a - b).abs() / b)
+        .collect();
+    lit.sort_unstable_by(f64::total_cmp);
+    let within = lit.partition_point(|d| *d <= PIXEL_TOLERANCE);
+    let p99 = match lit.len() {
+        0 => 0.0,
+        len => lit[((len as f64 * PIXEL_PERCENTILE).ceil() as usize).clamp(1, len) - 1],
+    };
     Some(Comparison {
         pixels: n,
         reference_mean: mean_b,
@@ -91,6 +127,12 @@ pub fn compare(a: &[[f32; 4]], b: &[[f32; 4]], b2: Option<&[[f32; 4]]>) -> Optio
         relative_rmse_raw: err2.sqrt() / mean_b,
         reference_noise: averaged_noise2.sqrt() / mean_b,
         relative_bias: sum_a / sum_b - 1.0,
+        lit_pixels: lit.len(),
+        lit_within_tolerance: match lit.len() {
+            0 => 1.0,
+            len => within as f64 / len as f64,
+        },
+        lit_p99_difference: p99,
     })
 }
 
@@ -159,6 +201,25 @@ mod tests {
         assert!((c.relative_rmse_raw - (0.01f64 + sigma2 / 2.0).sqrt() / 2.0).abs() < 2e-3);
         assert!((c.reference_noise - (sigma2 / 2.0).sqrt() / 2.0).abs() < 2e-3);
         assert!((c.relative_rmse - 0.05).abs() < 3e-3, "{c:?}");
+    }
+
+    #[test]
+    fn per_pixel_figures_count_the_lit_pixels_off_by_more_than_the_tolerance() {
+        // 100 lit pixels, of which 3 are 20 % off and one 50 %; a dim pixel (below a tenth of
+        // the mean) 90 % off does not count.
+        let mut b: Vec<_> = (0..100).map(|_| px(1.0, 1.0)).collect();
+        b.push(px(0.01, 1.0));
+        let mut a = b.clone();
+        for p in &mut a[..3] {
+            *p = px(1.2, 1.0);
+        }
+        a[3] = px(0.5, 1.0);
+        a[100] = px(0.001, 1.0);
+        let c = compare(&a, &b, None).unwrap();
+        assert_eq!(c.lit_pixels, 100);
+        assert!((c.lit_within_tolerance - 0.96).abs() < 1e-12);
+        // The 99th of 100 sorted differences: the largest but one.
+        assert!((c.lit_p99_difference - 0.2).abs() < 1e-6, "{c:?}");
     }
 
     #[test]

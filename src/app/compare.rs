@@ -1,7 +1,7 @@
 //! `vscatter compare IMAGE.exr REFERENCE.exr`: the measure of [`vscatter::compare`], printed as
 //! text or JSON, with an optional false-colour difference image.
 
-use vscatter::compare::{compare, diff_image, read, Rgba, VOLUME_ALPHA};
+use vscatter::compare::{compare, diff_image, read, Rgba, PIXEL_TOLERANCE, VOLUME_ALPHA};
 use vscatter::io::image::WriteOptions;
 use vscatter::{Error, Result};
 
@@ -57,6 +57,13 @@ pub fn run(args: &CompareArgs) -> Result<()> {
             100.0 * c.relative_rmse_raw,
             100.0 * c.reference_noise,
             100.0 * c.relative_bias
+        );
+        println!(
+            "{:.1} % of {} lit pixels within {:.0} % of the reference; 99th percentile {:.1} %",
+            100.0 * c.lit_within_tolerance,
+            c.lit_pixels,
+            100.0 * PIXEL_TOLERANCE,
+            100.0 * c.lit_p99_difference
         );
     }
     Ok(())
