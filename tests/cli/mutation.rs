@@ -24,7 +24,8 @@ const RUN_LIMIT: Duration = Duration::from_secs(20);
 const MEMORY_LIMIT: &str = "2147483648";
 
 /// Small valid files of every kind: float (blosc), half, zip, uncompressed, double (OpenVDB 7),
-/// several grids, vector-only, tiles at every level, an empty grid.
+/// several grids, vector-only, tiles at every level, an empty grid; and, made from one of them,
+/// format 222 ([`as_format_222`]).
 const FILES: [&str; 10] = [
     "small_cloud.vdb",
     "small_cloud_half.vdb",
@@ -37,6 +38,19 @@ const FILES: [&str; 10] = [
     "huge_tiles_2048.vdb",
     "empty.vdb",
 ];
+
+/// The ZIP fixture as OpenVDB 3.2 would have written it, format 222: the file format and library
+/// version words rewritten. A volume grid's bytes are the same in 222, 223 and 224 when it uses
+/// ZIP or no compression (docs/vdb-format.md, "Format versions"; Blosc came with 223), so this is a
+/// well-formed 222 file, which Debian's OpenVDB can no longer write.
+pub fn as_format_222() -> Vec<u8> {
+    let mut bytes = std::fs::read(fixture("small_cloud_zip.vdb")).unwrap();
+    // Magic (8 bytes), then u32 file format, u32 library major, u32 library minor.
+    for (at, word) in [(8, 222u32), (12, 3), (16, 2)] {
+        bytes[at..at + 4].copy_from_slice(&word.to_le_bytes());
+    }
+    bytes
+}
 
 /// One damaged copy of `bytes`: a flipped bit, a byte set to 0 or 255, a 4- or 8-byte field set to
 /// a huge or negative value, or a truncation. Half the damage lands in the first 2 kB, where the
@@ -118,8 +132,9 @@ fn no_damaged_file_crashes_the_reader() {
         let mut rng = Pcg64::seed_from_u64(0x5eed_f7d6);
         FILES
             .iter()
-            .flat_map(|name| {
-                let bytes = std::fs::read(fixture(name)).unwrap();
+            .map(|name| (name.to_string(), std::fs::read(fixture(name)).unwrap()))
+            .chain([("format_222.vdb".to_string(), as_format_222())])
+            .flat_map(|(name, bytes)| {
                 (0..MUTANTS_PER_FILE)
                     .map(|i| {
                         let path = dir.path().join(format!("{i}_{name}"));
@@ -158,7 +173,7 @@ fn no_damaged_file_crashes_the_reader() {
     eprintln!(
         "{} mutants of {} files, {} runs, {} unclean",
         jobs.len(),
-        FILES.len(),
+        FILES.len() + 1,
         2 * jobs.len(),
         failures.len()
     );

@@ -198,3 +198,33 @@ fn billions_of_voxels_in_tiles_are_answered_at_once() {
         );
     }
 }
+
+#[test]
+fn a_format_222_file_reads_as_its_224_original() {
+    // What the reader says of a file depends on its bytes, not on the version word: the same grid
+    // written as format 222 (ZIP) gives the same `info` as the 224 original.
+    let dir = tempfile::tempdir().unwrap();
+    let old = dir.path().join("format_222.vdb");
+    std::fs::write(&old, crate::mutation::as_format_222()).unwrap();
+    let info = |path: &str| {
+        let out = vscatter(&["info", "--json", path]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let mut v: Value = serde_json::from_slice(&out.stdout).unwrap();
+        let file = v.as_object_mut().unwrap();
+        file.remove("file");
+        (
+            file.remove("format_version"),
+            file.remove("library_version"),
+            v,
+        )
+    };
+    let (version, library, grids) = info(old.to_str().unwrap());
+    let (version_224, _, grids_224) = info(fixture("small_cloud_zip.vdb").to_str().unwrap());
+    assert_eq!((version, version_224), (Some(222.into()), Some(224.into())));
+    assert_eq!(library, Some("3.2".into()));
+    assert_eq!(grids, grids_224);
+}
