@@ -25,11 +25,12 @@
 //!
 //! **Lookups.** A point p between slices walks toward the light to the next slice, and on for up
 //! to [`WALK_SLICES`] while it is inside the medium, integrating the density; it adds the depth
-//! where it lands, bilinear between that slice's four voxels. The **optical depth** is
+//! where it lands, bilinear in √τ between that slice's four voxels. The **optical depth** is
 //! interpolated, never the transmittance, and only across the light, never along it: along the
 //! light the depth inside a lit surface grows as the square of the distance through the
 //! density's one-voxel ramp, and a straight line between two voxels' depths put the sunlit side of
-//! a cloud 10 % too dark at one optical depth per voxel.
+//! a cloud 10 % too dark at one optical depth per voxel; across it, √τ follows that growth where
+//! τ itself would bend ([`ShadowVolume::on_slice`]).
 
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
@@ -294,8 +295,15 @@ impl ShadowVolume {
         self.trilinear(p, cursor)
     }
 
-    /// The depth at `q`, a point on a slice, bilinear between the slice's four voxels around it;
-    /// `None` when no brick holds them.
+    /// The depth at `q`, a point on a slice, between the slice's four voxels around it, bilinear
+    /// in √τ; `None` when no brick holds them. Across the light the depth is convex where rays
+    /// start to cross a surface (it grows as the square of the distance into the density's
+    /// one-voxel ramp), so a straight line between four depths overestimates it, and a straight
+    /// line between transmittances overestimates the light. Measured at the torus fixture's
+    /// surface ramp under three sun directions, landing on the exact depths of the four voxels:
+    /// the transmittance of points lit through the ring (depth 2–6) came out 8.8–11.0 % too dark
+    /// from τ, 13.7–17.0 % too bright from e^(−τ), within ±1.1 % from √τ (0.3–0.4 % from
+    /// √τ at depth below 2, against 1.0–1.4 % from τ).
     #[inline]
     fn on_slice(&self, q: Vec3, cursor: &mut ShadowCursor) -> Option<f32> {
         let (cell, f) = floor_split(q);
@@ -304,8 +312,9 @@ impl ShadowVolume {
         let (b, c) = ((self.axis + 1) % 3, (self.axis + 2) % 3);
         let (sb, sc) = (STRIDES[b], STRIDES[c]);
         let (gb, gc) = (1.0 - f[b], 1.0 - f[c]);
-        let at = |o: usize| brick[i + o];
-        Some((at(0) * gc + at(sc) * f[c]) * gb + (at(sb) * gc + at(sb + sc) * f[c]) * f[b])
+        let at = |o: usize| brick[i + o].sqrt();
+        let root = (at(0) * gc + at(sc) * f[c]) * gb + (at(sb) * gc + at(sb + sc) * f[c]) * f[b];
+        Some(root * root)
     }
 
     /// The depth at `p` trilinear between its cell's eight voxels: where the slice lookup has no
