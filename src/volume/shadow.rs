@@ -70,22 +70,20 @@ pub struct ShadowVolume {
     depths: Vec<[f32; BRICK_VOXELS]>,
 }
 
-/// Most slices a lookup walks toward the light before it interpolates: across the light, the
-/// depth has a kink where rays start to cross a surface, and interpolating over the kink
-/// overestimates it: the torus fixture at one optical depth per voxel under one sun came out
-/// 10.6 % off the path tracer from the next slice, 8.4 % from two, 7.0 % from four (the cloud:
-/// 5.8, 4.5, 3.3 %). The walk stops earlier once it has left the medium (its landing point's four
-/// voxels are then all outside it, no kink) or past [`WALK_DEPTH`]. Not further than five: a
-/// walk that grazes out through a face lands, after more slices, inside the face's one-voxel
-/// ramp, where the depth across the light is farthest from bilinear (the unit test's grazing
-/// point: 6 % off the exact depth from five slices, 14 % from eight), for a gain of 0.1 point on
-/// the torus.
+/// Most slices a lookup walks toward the light before it interpolates (module doc, "Lookups"):
+/// the further it has walked, the less of its depth comes from the interpolation where it lands
+/// ([`WALK_DEPTH`] has the figures). It stops earlier once it has left the medium (its landing
+/// point's four voxels are then all outside it, no kink) or past [`WALK_DEPTH`]. Not further
+/// than five: a walk that grazes out through a face lands, after more slices, inside the face's
+/// one-voxel ramp, where the depth across the light bends most (landing linear in τ, the unit
+/// test's grazing point was 6 % off the exact depth from five slices, 14 % from eight).
 const WALK_SLICES: usize = 5;
 /// Depth past which a lookup stops walking: the kinks that matter lie within the first optical
 /// depths under a lit surface. Measured on the torus fixture under one sun against the path
-/// tracer at the same pixel filter (64 samples per pixel, 256×144): at one optical depth per
-/// voxel, four slices to depth 1 left 4.98 % (bias −2.1 %), five to depth 2 4.38 % (−1.3 %); at
-/// 0.5, 2.90 and 2.66 %. It costs 10 % more of the march's instructions (callgrind, a 480×270
+/// tracer at the same pixel filter (64 samples per pixel, 256×144, one optical depth per voxel),
+/// with the √τ landing: no walk past the next slice 4.11 %, two slices to depth 1 3.43 %, four
+/// to 1 2.82 %, five to 2 2.57 %, eight to 3 2.51 % (the cloud: 1.71, 1.57, 1.37, 1.34, 1.31 %).
+/// Five to 2 costs 10 % more of the march's instructions than four to 1 (callgrind, a 480×270
 /// render of the bench cloud under the built-in sky and its sun).
 const WALK_DEPTH: f32 = 2.0;
 
