@@ -128,14 +128,11 @@ pub fn coarsen(fine: &SparseGrid) -> SparseGrid {
     for leaf in leaves {
         // A block wholly active at one value (the inside of a uniform region) stays a tile, so a
         // tiled volume keeps its tiles at every level.
+        let first = leaf.values.get(0);
         let uniform = leaf.mask.iter().all(|&m| m == u64::MAX)
-            && leaf
-                .values
-                .to_array()
-                .iter()
-                .all(|&v| v == leaf.values.get(0));
+            && leaf.values.to_array().iter().all(|&v| v == first);
         match uniform {
-            true => coarse.insert_tile(TileLevel::Block, leaf.origin, leaf.values.get(0)),
+            true => coarse.insert_tile(TileLevel::Block, leaf.origin, first),
             false => coarse.push_leaf(leaf),
         }
     }
