@@ -38,8 +38,9 @@ const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// not point values, and F_ms what the fit took from them. 3: the source is identified by size,
 /// modification time in nanoseconds and a hash of its first bytes; the grid asked for and the
 /// framing box are recorded. 4: compressed sections, active density values only, and the q8
-/// precision.
-pub const VERSION: u32 = 4;
+/// precision. 5: T_ri fitted over the trilinear fringe and pulled toward the footprint means
+/// (a version-4 fit could light hot pixels).
+pub const VERSION: u32 = 5;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
 /// Bytes of a leaf's origin and mask in the leaves section, and of a tile in the tiles section.

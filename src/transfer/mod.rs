@@ -183,7 +183,13 @@ pub fn bake(
     let bar = progress.phase("fit", n as u64);
     let mut t_ri = single(field, single::Origins::Footprint, &bar);
     drop(mip);
-    fit::least_squares(&field.grid, &layout, &mut t_ri, coeffs);
+    fit::least_squares(
+        &field.grid,
+        &layout,
+        &mut t_ri,
+        coeffs,
+        fit::FIT_REGULARISATION,
+    );
     bar.finish_and_clear();
     if !settings.single_scatter {
         for (f, t) in f_ms.iter_mut().zip(&t_ri) {

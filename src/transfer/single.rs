@@ -167,6 +167,7 @@ pub fn bake_single(
 ) -> Vec<f32> {
     let coeffs = settings.bands * settings.bands;
     let sets = direction_sets(settings.samples, settings.bands, settings.seed);
+    let quadrature = super::fit::Quadrature::new(layout.k);
     let mut by_set: Vec<Vec<u32>> = vec![Vec::new(); DIRECTION_SETS];
     for (slot, v) in layout.voxels().iter().enumerate() {
         by_set[set_of(*v, settings.seed)].push(slot as u32);
@@ -189,7 +190,7 @@ pub fn bake_single(
             let starts = match settings.origins {
                 Origins::Node => None,
                 Origins::Footprint => {
-                    super::fit::spread_starts(density, layout.k, v, &set.dirs, settings.seed)
+                    super::fit::spread_starts(density, &quadrature, v, &set.dirs, settings.seed)
                 }
             };
             match starts {

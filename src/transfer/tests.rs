@@ -337,9 +337,11 @@ fn brute_force_dc(depth: &OpticalDepth, x: Vec3, n: usize) -> f64 {
 }
 
 /// The relative residual of node `v`'s normal equation for the DC coefficient `dc(slot)`:
-/// Σ_p ρ w_v (Σ_m w_m L_m − T(p)) / Σ_p ρ w_v T(p) over the density voxels p of `v`'s footprint,
-/// w the trilinear weights between nodes K apart and T the brute-force transmittance. Zero for the
-/// least-squares fit the renderer's interpolation wants.
+/// (Σ_p ρ w_v (Σ_m w_m L_m − T(p)) + λ·Σ_p ρ w_v (L_v − T(p))) / Σ_p ρ w_v T(p) over the
+/// midpoints p between the density's voxels in `v`'s footprint (the fit's quadrature), ρ the
+/// trilinear density, w the trilinear weights between nodes K apart, T the brute-force
+/// transmittance and λ the fit's pull toward the footprint mean. Zero for the fit the renderer's
+/// interpolation wants.
 fn normal_residual(
     density: &SparseGrid,
     layout: &TransferLayout,
@@ -348,18 +350,20 @@ fn normal_residual(
     dc: impl Fn(usize) -> f64,
 ) -> f64 {
     let k = layout.k;
+    let lambda = super::fit::FIT_REGULARISATION;
     let tent = |t: f32| (1.0 - t.abs()).max(0.0);
     let (mut residual, mut total) = (0.0, 0.0);
-    for o in (0..(2 * k - 1).pow(3)).map(|i| {
-        let s = 2 * k - 1;
-        IVec3::new(i / (s * s), (i / s) % s, i % s) - (k - 1)
+    let own = layout.slot(v).map_or(0.0, &dc);
+    for o in (0..(2 * k).pow(3)).map(|i| {
+        let s = 2 * k;
+        IVec3::new(i / (s * s), (i / s) % s, i % s) - k
     }) {
-        let p = v * k + o;
-        let rho = density.value(p) as f64;
+        let p = (v * k + o).as_vec3() + 0.5;
+        let rho = density.sample_index(p) as f64;
         if rho <= 0.0 {
             continue;
         }
-        let q = p.as_vec3() / k as f32;
+        let q = p / k as f32;
         let base = q.floor().as_ivec3();
         let mut interpolated = 0.0;
         for c in 0..8 {
@@ -368,8 +372,8 @@ fn normal_residual(
             interpolated += w * layout.slot(m).map_or(0.0, &dc);
         }
         let w_v = (0..3).map(|a| tent(q[a] - v[a] as f32)).product::<f32>() as f64;
-        let t = brute_force_dc(plain, p.as_vec3(), 1024);
-        residual += rho * w_v * (interpolated - t);
+        let t = brute_force_dc(plain, p, 1024);
+        residual += rho * w_v * (interpolated - t + lambda * (own - t));
         total += rho * w_v * t;
     }
     residual / total

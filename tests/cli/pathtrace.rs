@@ -125,11 +125,11 @@ fn transfer_agrees_with_the_path_tracer() {
     // albedo 0.9, the path tracer's noise (two seeds) subtracted. The report's targets are 5 %
     // (single) and 10 % (multiple); these limits sit just above what is measured here, at this
     // resolution and noise, so either renderer drifting shows:
-    //   cloud: single 3.95 %, multiple 3.41 %;  torus: single 4.33 %, multiple 4.40 %.
+    //   cloud: single 3.16 %, multiple 3.65 %;  torus: single 2.60 %, multiple 4.41 %.
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     for (name, single_limit, multi_limit) in
-        [("cloud.vdb", 0.043, 0.037), ("torus.vdb", 0.047, 0.048)]
+        [("cloud.vdb", 0.035, 0.039), ("torus.vdb", 0.029, 0.048)]
     {
         for seed in ["1", "2"] {
             let pt = ["--method", "pathtrace", "--spp", "512", "--seed", seed];
@@ -210,4 +210,41 @@ fn compare_refuses_bad_input_cleanly() {
     for (args, code, names) in cases {
         assert_clean_failure(&vscatter_in(d, args), code, names);
     }
+}
+
+#[test]
+fn a_finer_transfer_lights_no_hot_pixels() {
+    // At --scale 3 the torus's surface falls midway between nodes in places, where the fit alone
+    // cannot tell two nodes apart: unpulled, a few ran off and lit pixels many times too bright
+    // (56 % against the --scale 6 render at this size; 9 % with the fit's pull).
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (input, env) = (fixture("torus.vdb"), fixture("env/studio.exr"));
+    for (scale, out) in [("3", "k3.exr"), ("6", "k6.exr")] {
+        let o = vscatter_in(
+            d,
+            &[
+                "render",
+                input.to_str().unwrap(),
+                "-o",
+                out,
+                "--env",
+                env.to_str().unwrap(),
+                "--res",
+                "96x54",
+                "--sigma-t",
+                "0.368",
+                "--single-scatter",
+                "--scale",
+                scale,
+                "--no-background",
+                "--quiet",
+            ],
+        );
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    let o = vscatter_in(d, &["compare", "k3.exr", "k6.exr", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let rmse = stats_of(&o)["relative_rmse"].as_f64().unwrap();
+    assert!(rmse < 0.2, "--scale 3 against --scale 6: {rmse}");
 }
