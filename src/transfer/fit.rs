@@ -145,10 +145,11 @@ impl Quadrature {
     }
 
     /// The trilinear values of `grid` at every point around node `v`, by flat index: the voxels of
-    /// the cube read a block at a time, then interpolated one axis after another.
+    /// the cube −K..=K around the node read a block at a time, then, since point j of an axis lies
+    /// midway between voxels j and j + 1 of the cube, averaged in pairs one axis after another.
     fn values(&self, grid: &SparseGrid, v: IVec3) -> Vec<f32> {
         let k = self.k;
-        let m = (2 * k + 1) as usize; // voxels −K..=K per axis
+        let (n, m) = (self.n, self.n + 1);
         let lo = v * k - k;
         let mut cube = vec![0f32; m * m * m];
         let (first, last) = (lo >> LEAF_LOG2, (lo + 2 * k) >> LEAF_LOG2);
@@ -175,36 +176,29 @@ impl Quadrature {
                 }
             }
         }
-        // Point j lies between voxels ⌊c_j⌋ and ⌊c_j⌋ + 1 (c_j its offset), at their fraction.
-        let taps: Vec<(usize, f32)> = self
-            .axis
-            .iter()
-            .map(|a| {
-                let f = a.offset.floor();
-                ((f as i32 + k) as usize, a.offset - f)
-            })
-            .collect();
-        let n = self.n;
-        // Along x, then y, then z: each pass turns one axis from m voxels into n points.
+        // m³ voxels → n·m² → n²·m → n³ points.
         let mut ax = vec![0f32; n * m * m];
-        for (j, &(b, f)) in taps.iter().enumerate() {
-            for r in 0..m * m {
-                ax[j * m * m + r] = (1.0 - f) * cube[b * m * m + r] + f * cube[(b + 1) * m * m + r];
-            }
+        for (j, row) in ax.chunks_exact_mut(m * m).enumerate() {
+            let (a, b) = (
+                &cube[j * m * m..][..m * m],
+                &cube[(j + 1) * m * m..][..m * m],
+            );
+            row.iter_mut()
+                .zip(a.iter().zip(b))
+                .for_each(|(o, (a, b))| *o = 0.5 * (a + b));
         }
         let mut ay = vec![0f32; n * n * m];
-        for x in 0..n {
-            for (j, &(b, f)) in taps.iter().enumerate() {
-                for z in 0..m {
-                    let (a, c) = (ax[(x * m + b) * m + z], ax[(x * m + b + 1) * m + z]);
-                    ay[(x * n + j) * m + z] = (1.0 - f) * a + f * c;
-                }
-            }
+        for (xj, row) in ay.chunks_exact_mut(m).enumerate() {
+            let (x, j) = (xj / n, xj % n);
+            let (a, b) = (&ax[(x * m + j) * m..][..m], &ax[(x * m + j + 1) * m..][..m]);
+            row.iter_mut()
+                .zip(a.iter().zip(b))
+                .for_each(|(o, (a, b))| *o = 0.5 * (a + b));
         }
         let mut out = vec![0f32; n * n * n];
-        for xy in 0..n * n {
-            for (j, &(b, f)) in taps.iter().enumerate() {
-                out[xy * n + j] = (1.0 - f) * ay[xy * m + b] + f * ay[xy * m + b + 1];
+        for (row, a) in out.chunks_exact_mut(n).zip(ay.chunks_exact(m)) {
+            for (j, o) in row.iter_mut().enumerate() {
+                *o = 0.5 * (a[j] + a[j + 1]);
             }
         }
         out

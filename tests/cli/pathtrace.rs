@@ -91,6 +91,18 @@ fn flags_that_mean_nothing_to_the_method_are_refused() {
 
 /// Renders `fixture` under the studio environment at the accuracy test's settings.
 fn render(dir: &Path, fixture_name: &str, out: &str, extra: &[&str]) {
+    render_studio(dir, fixture_name, out, ("64x36", "0.08"), extra);
+}
+
+/// Renders `fixture` under the studio environment, albedo 0.9, the volume alone, at the
+/// resolution and σt of `(res, sigma_t)`.
+fn render_studio(
+    dir: &Path,
+    fixture_name: &str,
+    out: &str,
+    (res, sigma_t): (&str, &str),
+    extra: &[&str],
+) {
     let (input, env) = (fixture(fixture_name), fixture("env/studio.exr"));
     let mut args = vec![
         "render",
@@ -100,9 +112,9 @@ fn render(dir: &Path, fixture_name: &str, out: &str, extra: &[&str]) {
         "--env",
         env.to_str().unwrap(),
         "--res",
-        "64x36",
+        res,
         "--sigma-t",
-        "0.08",
+        sigma_t,
         "--albedo",
         "0.9",
         "--no-background",
@@ -219,29 +231,9 @@ fn a_finer_transfer_lights_no_hot_pixels() {
     // (56 % against the --scale 6 render at this size; 9 % with the fit's pull).
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let (input, env) = (fixture("torus.vdb"), fixture("env/studio.exr"));
     for (scale, out) in [("3", "k3.exr"), ("6", "k6.exr")] {
-        let o = vscatter_in(
-            d,
-            &[
-                "render",
-                input.to_str().unwrap(),
-                "-o",
-                out,
-                "--env",
-                env.to_str().unwrap(),
-                "--res",
-                "96x54",
-                "--sigma-t",
-                "0.368",
-                "--single-scatter",
-                "--scale",
-                scale,
-                "--no-background",
-                "--quiet",
-            ],
-        );
-        assert!(o.status.success(), "{}", stderr(&o));
+        let flags = ["--single-scatter", "--scale", scale, "--quiet"];
+        render_studio(d, "torus.vdb", out, ("96x54", "0.368"), &flags);
     }
     let o = vscatter_in(d, &["compare", "k3.exr", "k6.exr", "--json"]);
     assert!(o.status.success(), "{}", stderr(&o));
