@@ -380,14 +380,14 @@ pub fn fitted_field(
 }
 
 /// Least-squares node values from the footprint means `means` (`layout.len() × coeffs`, t̄_n per
-/// node; nodes without density keep theirs), in place, pulled toward the means by
-/// `regularisation` (λ of [`FIT_REGULARISATION`]; 0: plain least squares).
+/// node; nodes without density keep theirs), in place, pulled toward the means by `lambda`
+/// (λ of [`FIT_REGULARISATION`]; 0: plain least squares).
 pub fn least_squares(
     density: &SparseGrid,
     layout: &TransferLayout,
     means: &mut [f32],
     coeffs: usize,
-    regularisation: f64,
+    lambda: f64,
 ) {
     let quadrature = Quadrature::new(layout.k);
     let rows: Vec<Row> = layout
@@ -395,7 +395,6 @@ pub fn least_squares(
         .par_iter()
         .map(|v| row(density, layout, &quadrature, *v))
         .collect();
-    let lambda = regularisation;
     let n = rows.len();
     let free: Vec<bool> = rows.iter().map(|r| r.mass > 0.0).collect();
     let diagonal: Vec<f64> = rows
