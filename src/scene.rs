@@ -14,9 +14,7 @@ use crate::io::progress::Phases;
 use crate::light::Lighting;
 use crate::pathtrace::{Medium3d, PathStats, PathTracer};
 use crate::render::sunlight::SunLight;
-use crate::render::{
-    self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows, TransferShape,
-};
+use crate::render::{self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows};
 use crate::transfer::cache::{self, Cache, Header, Origin, Source};
 use crate::transfer::memory::BakePlan;
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
@@ -52,8 +50,6 @@ pub struct Scene {
     /// The suns' shadow volumes and lattice solves, kept while a sun does not move: another
     /// camera, or another environment with the same sun, reuses them.
     sun_lights: Mutex<Vec<Arc<SunLight>>>,
-    /// The visibility that shapes a single-scattering transfer, kept for the transfer's life.
-    shape: Mutex<Option<Arc<TransferShape>>>,
 }
 
 /// Camera rays per leaf from which a march builds the density's bricks. Bricks hold about twice
@@ -64,17 +60,6 @@ pub struct Scene {
 /// clearly pay.
 const BRICKED_RAYS_PER_LEAF: u64 = 64;
 
-/// Whether `transfer` lit by `lighting` is shaped by the density's visibility: a single-scattering
-/// transfer under an environment that is not black (the suns alone need no transfer).
-fn needs_shape(transfer: &Transfer, lighting: &Lighting) -> bool {
-    transfer.lattice.is_none()
-        && lighting
-            .sh_coefficients(transfer.bands)
-            .iter()
-            .flatten()
-            .any(|&c| c != 0.0)
-}
-
 /// What the light of one render cost beyond relighting, for `--stats`.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct LightReport {
@@ -84,9 +69,6 @@ pub struct LightReport {
     pub bytes: u64,
     /// Building the density's bricks for this render (0 when built before or not built).
     pub brick_seconds: f64,
-    /// Building the [`TransferShape`] (0 when kept from an earlier render or not needed).
-    pub shape_seconds: f64,
-    pub shape_bytes: u64,
 }
 
 impl Scene {
@@ -141,7 +123,6 @@ impl Scene {
             read_seconds,
             field_seconds: clock.elapsed().as_secs_f64(),
             sun_lights: Mutex::new(Vec::new()),
-            shape: Mutex::new(None),
         })
     }
 
@@ -249,7 +230,6 @@ impl Scene {
         let (lights, mut report) = self.sun_lights(transfer, lighting);
         report.brick_seconds = brick_seconds;
         let refs: Vec<&SunLight> = lights.iter().map(|l| l.as_ref()).collect();
-        let shape = self.shape(transfer, lighting, &mut report);
         let lookup = |d| lighting.background(d);
         let background: Option<Background> = background.then_some(&lookup);
         let (out, stats, times) = render::render_volume(
@@ -258,7 +238,6 @@ impl Scene {
             &render::Light {
                 lighting,
                 suns: &refs,
-                shape: shape.as_deref(),
             },
             background,
             camera,
@@ -269,62 +248,15 @@ impl Scene {
         Ok((out, stats, times, report))
     }
 
-    /// The [`TransferShape`] of a single-scattering transfer lit by an environment: kept, or
-    /// built now.
-    fn shape(
-        &self,
-        transfer: &Transfer,
-        lighting: &Lighting,
-        report: &mut LightReport,
-    ) -> Option<Arc<TransferShape>> {
-        if !needs_shape(transfer, lighting) {
-            return None;
-        }
-        let mut kept = self.shape.lock().unwrap_or_else(|e| e.into_inner());
-        let shape = kept.get_or_insert_with(|| {
-            let shape = Arc::new(TransferShape::build(&self.field, transfer));
-            report.shape_seconds = shape.seconds;
-            shape
-        });
-        report.shape_bytes = shape.memory_bytes();
-        Some(shape.clone())
-    }
-
-    /// Bytes the light of `lighting` will hold beyond the transfer, estimated before it is built:
-    /// a shadow volume and a fluence per transfer voxel for each sun not kept from an earlier
-    /// render, and a single-scattering transfer's [`TransferShape`] unless kept.
-    pub fn light_plan(&self, lighting: &Lighting) -> u64 {
-        self.shape_plan(lighting) + self.sun_plan(lighting)
-    }
-
-    /// The [`TransferShape`]'s share of [`Scene::light_plan`].
-    pub fn shape_plan(&self, lighting: &Lighting) -> u64 {
-        match &self.transfer {
-            Some(t) if self.shape_to_build(lighting) => {
-                TransferShape::estimate_bytes(&self.field, t)
-            }
-            _ => 0,
-        }
-    }
-
-    /// Whether a render under `lighting` builds a [`TransferShape`] (needed, and not kept).
-    fn shape_to_build(&self, lighting: &Lighting) -> bool {
-        self.transfer
-            .as_ref()
-            .is_some_and(|t| needs_shape(t, lighting))
-            && self.shape.lock().is_ok_and(|s| s.is_none())
-    }
-
     /// Whether a render of `camera` at `spp` under `lighting` holds the density's bricks: built
-    /// before (by a bake), or built for it when the light has shadow volumes or a visibility to
-    /// build (they sample every voxel of the active region) or the march has
+    /// before (by a bake), or built for it when the light has shadow volumes to build (they
+    /// sample every voxel of the active region) or the march has
     /// [`BRICKED_RAYS_PER_LEAF`] camera rays per leaf.
     pub fn render_bricks(&self, camera: &Camera, spp: u32, lighting: &Lighting) -> bool {
         let rays = camera.width as u64 * camera.height as u64 * spp as u64;
         let leaves = self.field.grid.leaf_count() as u64;
         self.field.has_bricks()
             || self.new_suns(lighting) > 0
-            || self.shape_to_build(lighting)
             || rays >= BRICKED_RAYS_PER_LEAF * leaves
     }
 
@@ -344,7 +276,9 @@ impl Scene {
         }
     }
 
-    /// The suns' share of [`Scene::light_plan`].
+    /// Bytes the suns' light will hold beyond the transfer, estimated before it is built: a
+    /// shadow volume and a fluence per transfer voxel for each sun not kept from an earlier
+    /// render.
     pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
         // The shadow volume's estimate walks the density's blocks: only for suns to build.
         let new_suns = self.new_suns(lighting) as u64;
@@ -392,7 +326,6 @@ impl Scene {
             .get_mut()
             .unwrap_or_else(|e| e.into_inner())
             .clear();
-        *self.shape.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
     }
 
     /// The light of each of `lighting.suns`: kept from an earlier render where the sun has not

@@ -111,6 +111,8 @@ pub fn bake_stats_json(stats: &BakeStats) -> serde_json::Value {
         "transfer_voxels": stats.transfer_voxels,
         "transfer_tiles": stats.transfer_tiles,
         "far_field_bytes": stats.far_field_bytes,
+        "visibility_seconds": stats.visibility_seconds,
+        "visibility_bytes": stats.visibility_bytes,
         "lattice_generations": stats.lattice.map(|l| l.generations),
         "lattice_converged": stats.lattice.map(|l| l.converged),
         "energy_single": stats.lattice.map(|l| l.energy_single),

@@ -543,11 +543,10 @@ fn transfer(
         &scene.field,
         scene.render_bricks(view.camera, view.spp, view.lighting),
         scene.relight_plan(view.lighting),
-        scene
-            .transfer
-            .as_ref()
-            .map_or(0, |t| t.layout.memory_bytes() + t.coefficient_bytes()),
-        scene.light_plan(view.lighting),
+        scene.transfer.as_ref().map_or(0, |t| {
+            t.layout.memory_bytes() + t.coefficient_bytes() + t.shape_bytes()
+        }),
+        scene.sun_plan(view.lighting),
         scene.sun_solve_plan(view.lighting),
         memory::image_bytes(view.camera.width, view.camera.height, view.png),
     );
@@ -585,8 +584,6 @@ fn transfer(
     stats["sun_shadow_seconds"] = json!(suns.shadow_seconds);
     stats["sun_lattice_seconds"] = json!(suns.lattice_seconds);
     stats["sun_bytes"] = json!(suns.bytes);
-    stats["visibility_seconds"] = json!(suns.shape_seconds);
-    stats["visibility_bytes"] = json!(suns.shape_bytes);
     stats["march_seconds"] = json!(report.march.as_secs_f64());
     stats["rays"] = json!(march.rays);
     stats["samples_taken"] = json!(march.samples_taken);
@@ -594,20 +591,11 @@ fn transfer(
     Ok(Some(()))
 }
 
-/// What the suns (and a single-scattering transfer's visibility) will hold, for `--dry-run`: one
-/// line.
+/// What the suns will hold, for `--dry-run`: one line.
 fn sun_plan(scene: &Scene, lighting: &Lighting) -> String {
-    let mut line = format!(
+    format!(
         "{} suns: shadow volumes and fluences about {}",
         lighting.suns.len(),
         HumanBytes(scene.sun_plan(lighting))
-    );
-    let shape = scene.shape_plan(lighting);
-    if shape > 0 {
-        line += &format!(
-            "; the visibility that shapes single scattering about {}",
-            HumanBytes(shape)
-        );
-    }
-    line
+    )
 }

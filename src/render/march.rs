@@ -30,7 +30,7 @@ use crate::render::relight::Radiance;
 use crate::transfer::{Medium, TransferLayout, PHASE};
 use crate::volume::bricks::BrickSampler;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
-use crate::volume::visibility::Visibility;
+use crate::volume::visibility::{Visibility, VisibilitySampler};
 use crate::volume::DensityField;
 
 /// Stop marching when less than this fraction of the background still shows through. The rest of
@@ -184,8 +184,19 @@ pub struct TransferRadiance<'a> {
     layout: &'a TransferLayout,
     /// The all-zero record missing corners point at.
     missing: u32,
-    /// The density's V and its fitted value per slot.
-    visibility: Option<(&'a Visibility, &'a [f32])>,
+    shaping: Option<Shaping<'a>>,
+}
+
+/// What shapes the direct light: the density's V with its fitted value per slot
+/// ([`crate::transfer::shape`]), and the share of the direct light the shape takes from a point
+/// that comes back to it scattered.
+#[derive(Clone, Copy)]
+pub struct Shaping<'a> {
+    pub visibility: &'a Visibility,
+    pub fitted: &'a [f32],
+    /// The share of the light the shape moves that multiple scattering gives back
+    /// ([`crate::transfer::shape::regained`]; 0 for single scattering).
+    pub regained: f32,
 }
 
 /// Smallest interpolated V the direct light is reshaped by: below it the node values are too
@@ -196,29 +207,33 @@ const MIN_FITTED_VISIBILITY: f32 = 1e-4;
 const MAX_VISIBILITY_RATIO: f32 = 4.0;
 
 impl<'a> TransferRadiance<'a> {
-    /// `visibility`: the density's V with its fitted value per slot (`None`: plain interpolation).
+    /// `shaping`: what shapes the direct light (`None`: plain interpolation).
     pub fn new(
         layout: &'a TransferLayout,
         radiance: &'a Radiance,
-        visibility: Option<(&'a Visibility, &'a [f32])>,
+        shaping: Option<Shaping<'a>>,
     ) -> Self {
         TransferRadiance {
             inv_k: 1.0 / layout.k as f32,
             nodes: &radiance.nodes,
             layout,
             missing: radiance.len() as u32,
-            visibility,
+            shaping,
         }
     }
 
     /// Moves the weights gathered in the current cell into the radiance sum.
     fn flush(&self, sum: &mut CellSum) {
+        let regained = self.shaping.map_or(0.0, |s| s.regained);
         if let Some(slots) = sum.slots {
             for ((&slot, &wd), &wi) in slots.iter().zip(&sum.direct).zip(&sum.indirect) {
                 let node = &self.nodes[slot as usize];
+                // wi − wd: the direct light's weight the shape took away (negative where it
+                // added), the plain weight being the indirect light's.
+                let back = regained * (wi - wd);
                 for ch in 0..3 {
                     sum.radiance[0][ch] += wd * node[ch];
-                    sum.radiance[1][ch] += wi * node[3 + ch];
+                    sum.radiance[1][ch] += wi * node[3 + ch] + back * node[ch];
                 }
             }
         }
@@ -237,7 +252,7 @@ pub struct CellSum<'a> {
     direct: [f32; 8],
     indirect: [f32; 8],
     radiance: [[f32; 3]; 2],
-    visibility: Option<BrickSampler<'a>>,
+    visibility: Option<VisibilitySampler<'a>>,
 }
 
 impl<'a> InScatter for TransferRadiance<'a> {
@@ -250,7 +265,7 @@ impl<'a> InScatter for TransferRadiance<'a> {
             direct: [0.0; 8],
             indirect: [0.0; 8],
             radiance: [[0.0; 3]; 2],
-            visibility: self.visibility.map(|(v, _)| v.sampler()),
+            visibility: self.shaping.map(|s| s.visibility.sampler()),
         }
     }
 
@@ -272,18 +287,19 @@ impl<'a> InScatter for TransferRadiance<'a> {
             w[n + 4] = f.x * yz;
         }
         let mut cd = c;
-        if let (Some(sampler), Some(slots), Some((_, nodes_v))) =
-            (sum.visibility.as_mut(), sum.slots, self.visibility)
+        if let (Some(sampler), Some(slots), Some(shaping)) =
+            (sum.visibility.as_mut(), sum.slots, self.shaping)
         {
             // The missing corner's V is 0, as its light.
             let fitted: f32 = w
                 .iter()
                 .zip(slots)
-                .map(|(w, s)| w * nodes_v.get(s as usize).copied().unwrap_or(0.0))
+                .map(|(w, s)| w * shaping.fitted.get(s as usize).copied().unwrap_or(0.0))
                 .sum();
-            if fitted > MIN_FITTED_VISIBILITY && rho > 0.0 {
-                let fine = sampler.sample(p) / rho;
-                cd *= (fine / fitted).clamp(0.0, MAX_VISIBILITY_RATIO);
+            if fitted > MIN_FITTED_VISIBILITY {
+                if let Some(fine) = sampler.at(p, rho) {
+                    cd *= (fine / fitted).clamp(0.0, MAX_VISIBILITY_RATIO);
+                }
             }
         }
         for ((d, i), w) in sum.direct.iter_mut().zip(&mut sum.indirect).zip(w) {

@@ -23,8 +23,8 @@ use relight::relight;
 use crate::error::Result;
 use crate::io::image::{ImageBuf, Layer};
 use crate::light::Lighting;
+use crate::transfer::shape::regained;
 use crate::transfer::{Transfer, PHASE};
-use crate::volume::visibility::Visibility;
 use crate::volume::{DensityField, SparseGrid};
 use sunlight::SunLight;
 
@@ -96,47 +96,6 @@ pub struct RenderReport {
 pub struct Light<'a> {
     pub lighting: &'a Lighting,
     pub suns: &'a [&'a SunLight],
-    /// The visibility that shapes the direct light between transfer voxels (`None`: plain
-    /// interpolation).
-    pub shape: Option<&'a TransferShape>,
-}
-
-/// The density's visibility and its fitted values at the transfer's nodes: what shapes a
-/// single-scattering transfer's direct light between nodes ([`march::TransferRadiance`]).
-/// A multiple-scattering bake's F_ms carries the fit's correction albedo·(point − fitted), which
-/// the shaping would no longer balance: measured on the torus at 1.92 optical depths per transfer
-/// voxel it made the default render worse (13.9 → 14.5 % against the path tracer), so only
-/// `--single-scatter` transfers are shaped.
-pub struct TransferShape {
-    pub visibility: Visibility,
-    pub fitted: Vec<f32>,
-    pub seconds: f64,
-}
-
-impl TransferShape {
-    pub fn build(field: &DensityField, transfer: &Transfer) -> TransferShape {
-        let clock = Instant::now();
-        let visibility = Visibility::build(field, transfer.medium.sigma_t);
-        let fitted =
-            crate::transfer::fitted_field(&field.grid, &transfer.layout, &visibility.weighted);
-        TransferShape {
-            visibility,
-            fitted,
-            seconds: clock.elapsed().as_secs_f64(),
-        }
-    }
-
-    pub fn memory_bytes(&self) -> u64 {
-        (self.visibility.memory_bytes() + self.fitted.len() * 4) as u64
-    }
-
-    /// What [`TransferShape::build`] will hold at its peak for `field` and `transfer` (one shadow
-    /// volume at a time beside the result), without building it.
-    pub fn estimate_bytes(field: &DensityField, transfer: &Transfer) -> u64 {
-        crate::volume::shadow::ShadowVolume::estimate_bytes(&field.grid)
-            + (field.grid.memory_bytes() + field.brick_bytes()) as u64
-            + transfer.layout.len() as u64 * 4
-    }
 }
 
 /// Relights `transfer` under `light` and hands `consume` the march of `field` as `camera` sees it,
@@ -153,11 +112,7 @@ pub fn render_volume<R>(
     progress: &indicatif::ProgressBar,
     consume: impl FnOnce(&mut Rows) -> R,
 ) -> Result<(R, MarchStats, RenderReport)> {
-    let Light {
-        lighting,
-        suns,
-        shape,
-    } = *light;
+    let Light { lighting, suns } = *light;
     let t = Instant::now();
     let env_coeffs = lighting.sh_coefficients(transfer.bands);
     let project = t.elapsed();
@@ -178,7 +133,19 @@ pub fn render_volume<R>(
         march::TransferRadiance::new(
             &transfer.layout,
             &radiance,
-            shape.map(|s| (&s.visibility, s.fitted.as_slice())),
+            // Only the environment's light is shaped: without it the direct records are zero.
+            transfer
+                .shape
+                .as_deref()
+                .filter(|_| env_coeffs.iter().flatten().any(|&c| c != 0.0))
+                .map(|s| march::Shaping {
+                    visibility: &s.visibility,
+                    fitted: &s.fitted,
+                    regained: match transfer.lattice {
+                        Some(_) => regained(transfer.medium.albedo, s.cell_depth),
+                        None => 0.0,
+                    },
+                }),
         ),
         march::SunRadiance::new(
             field,
@@ -322,6 +289,7 @@ mod tests {
                 f_ms: dc(0.5 * sqrt_4pi),
             },
             lattice: None,
+            shape: None,
         };
         let c = [0.5f32, 1.0, 2.0];
         let lighting = Lighting {
@@ -342,7 +310,6 @@ mod tests {
             &Light {
                 lighting: &lighting,
                 suns: &[],
-                shape: None,
             },
             Some(&bg),
             &cam,

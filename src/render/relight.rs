@@ -254,6 +254,7 @@ mod tests {
                 f_ms: Coefficients::F32(f_ms),
             },
             lattice: None,
+            shape: None,
         }
     }
 

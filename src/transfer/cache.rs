@@ -21,16 +21,19 @@
 
 use std::io::{BufRead, Read, Seek, SeekFrom, Write};
 use std::path::Path;
+use std::sync::Arc;
 
 use glam::{DVec3, IVec3};
 use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
 use super::packing::{self, Precision, SectionReader, SectionWriter};
+use super::shape::TransferShape;
 use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout, TransferLight};
 use crate::error::{Error, Result};
 use crate::render::relight::StreamRelight;
 use crate::volume::grid::{Leaf, SparseGrid, TileLevel, Transform, LEAF_VOXELS};
+use crate::volume::visibility::{Resolution, Visibility};
 
 const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// Bumped whenever the layout or the meaning of the data changes; older caches are refused with a
@@ -39,15 +42,17 @@ const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// modification time in nanoseconds and a hash of its first bytes; the grid asked for and the
 /// framing box are recorded. 4: compressed sections, active density values only, and the q8
 /// precision. 5: T_ri fitted over the trilinear fringe and pulled toward the footprint means
-/// (a version-4 fit could light hot pixels).
-pub const VERSION: u32 = 5;
+/// (a version-4 fit could light hot pixels). 6: the visibility that shapes the direct light
+/// (`transfer::shape`), baked and stored.
+pub const VERSION: u32 = 6;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
 /// Bytes of a leaf's origin and mask in the leaves section, and of a tile in the tiles section.
 const LEAF_BYTES: usize = 12 + 64;
 const TILE_BYTES: usize = 16;
-/// Sections after the background: leaves, values, tiles, layout, t_ri, f_ms.
-const SECTIONS: usize = 6;
+/// Sections after the background: leaves, values, tiles, layout, t_ri, f_ms, the fitted
+/// visibility, the visibility.
+const SECTIONS: usize = 8;
 
 /// Bytes at the start of a source file hashed into its identity: a VDB's header and grid
 /// descriptors, where a re-export differs even when size and time do not.
@@ -120,6 +125,13 @@ pub struct Header {
     /// How the leaves' density values are stored: f32, or f16 when the precision allows it and
     /// every value fits.
     pub density: Precision,
+    /// The visibility's density level and directions ([`Resolution`]), and how many values it
+    /// stores.
+    pub visibility_level: usize,
+    pub visibility_directions: usize,
+    pub visibility_voxels: u64,
+    /// The mean optical depth across a transfer voxel the shape was baked with.
+    pub cell_depth: f32,
 }
 
 /// A cache's contents.
@@ -134,7 +146,7 @@ impl Header {
     pub fn describe(&self, path: &Path, size: u64) -> String {
         let h = self;
         format!(
-        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients, {} density\n",
+        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients, {} density\n  visibility  {} values at 1/{} resolution, {} directions\n",
         path.display(),
         VERSION,
         indicatif::HumanBytes(size),
@@ -156,6 +168,9 @@ impl Header {
         h.transfer_voxels,
         h.coefficients.name(),
         h.density.name(),
+        h.visibility_voxels,
+        1u64 << h.visibility_level.min(63),
+        h.visibility_directions,
     )
     }
 
@@ -228,6 +243,9 @@ pub fn header(
     precision: Precision,
 ) -> Header {
     let t = density.transform;
+    // A transfer without its visibility is refused by `write`; its header says so by counting
+    // no directions.
+    let visibility = transfer.shape.as_ref().map(|s| &s.visibility);
     Header {
         sigma_t: transfer.medium.sigma_t,
         albedo: transfer.medium.albedo,
@@ -254,6 +272,10 @@ pub fn header(
             true => Precision::F16,
             false => Precision::F32,
         },
+        visibility_level: visibility.map_or(0, |v| v.resolution.level),
+        visibility_directions: visibility.map_or(0, |v| v.resolution.directions),
+        visibility_voxels: visibility.map_or(0, |v| v.values().len() as u64),
+        cell_depth: transfer.shape.as_ref().map_or(0.0, |s| s.cell_depth),
     }
 }
 
@@ -269,6 +291,12 @@ pub fn write(
     let Some((t_ri, f_ms)) = transfer.coefficients() else {
         return Err(Error::Runtime(format!(
             "{}: a transfer relit as it was read has no coefficients to write",
+            path.display()
+        )));
+    };
+    let Some(shape) = &transfer.shape else {
+        return Err(Error::Runtime(format!(
+            "{}: a transfer without its visibility cannot be written",
             path.display()
         )));
     };
@@ -324,6 +352,12 @@ pub fn write(
                 packing::put_coefficients(s, &values.to_f32(coeffs), coeffs, header.coefficients)
             })?;
         }
+        put_section(&mut w, |s| {
+            s.shuffled(shape.fitted.iter().map(|v| v.to_le_bytes()))
+        })?;
+        put_section(&mut w, |s| {
+            s.shuffled(shape.visibility.values().iter().map(|v| v.to_le_bytes()))
+        })?;
         let sum = w.hash.digest();
         w.inner.write_all(&sum.to_le_bytes())?;
         w.inner.flush()
@@ -509,7 +543,12 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
             "truncated: {file_len} bytes cannot hold the sections the header describes"
         ));
     }
-    if !(1..=crate::light::sh::MAX_BANDS).contains(&header.bands) || header.scale < 1 {
+    if !(1..=crate::light::sh::MAX_BANDS).contains(&header.bands)
+        || header.scale < 1
+        || header.visibility_level > crate::volume::visibility::MAX_LEVEL
+        || header.visibility_directions == 0
+        || !(header.cell_depth >= 0.0 && header.cell_depth.is_finite())
+    {
         return Err("the header's bake settings are invalid".into());
     }
     Ok((header, end))
@@ -704,9 +743,22 @@ fn decode(
             TransferLight::Relit(relit.finish())
         }
     };
+    let fitted = body.section(|r| r.values(n, f32::from_le_bytes))?;
+    let values = body.section(|r| {
+        r.values(
+            usize::try_from(header.visibility_voxels).unwrap_or(usize::MAX),
+            half::f16::from_le_bytes,
+        )
+    })?;
     if body.left != 0 {
         return Err("padded: bytes follow the last section".into());
     }
+    let resolution = Resolution {
+        level: header.visibility_level,
+        directions: header.visibility_directions,
+    };
+    let visibility = Visibility::from_values(&density, resolution, values)
+        .ok_or("the visibility's values do not match the density")?;
     let transfer = Transfer {
         layout,
         bands: settings.bands,
@@ -716,6 +768,11 @@ fn decode(
         },
         light,
         lattice: (!settings.single_scatter).then_some(settings.lattice),
+        shape: Some(Arc::new(TransferShape {
+            visibility,
+            fitted,
+            cell_depth: header.cell_depth,
+        })),
     };
     Ok(Cache {
         header,
@@ -743,6 +800,12 @@ mod tests {
         g.insert_leaf(IVec3::new(0, 16, 0), mask, values);
         let layout = TransferLayout::build(&g, 6);
         let n = layout.len() * 4;
+        let shape = TransferShape::build(
+            &crate::volume::DensityField::new(g.clone()),
+            &layout,
+            2.0,
+            Resolution::COARSE,
+        );
         let transfer = Transfer {
             layout,
             bands: 2,
@@ -755,6 +818,7 @@ mod tests {
                 f_ms: Coefficients::F32((0..n).map(|i| -(i as f32) * 0.1).collect()),
             },
             lattice: Some(LatticeKind::All),
+            shape: Some(Arc::new(shape)),
         };
         let settings = BakeSettings {
             bands: 2,
@@ -879,7 +943,10 @@ mod tests {
         write(&path, &h, &g, &t).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         assert!(read_bytes(&with_header(&bytes, &h)).is_ok());
-        let lies: [fn(&mut Header); 5] = [
+        let lies: [fn(&mut Header); 8] = [
+            |h| h.visibility_voxels += 1,
+            |h| h.visibility_level = 0,
+            |h| h.visibility_level = 99,
             |h| h.leaves += 1,
             |h| h.leaves = u64::MAX,
             |h| h.tiles[1] += 1,
@@ -904,6 +971,10 @@ mod tests {
         assert_eq!(back.transfer.light, t.light);
         assert_eq!(back.transfer.layout.voxels(), t.layout.voxels());
         assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
+        let (back_shape, shape) = (back.transfer.shape.unwrap(), t.shape.unwrap());
+        assert_eq!(back_shape.fitted, shape.fitted);
+        assert_eq!(back_shape.visibility.values(), shape.visibility.values());
+        assert!(!shape.visibility.values().is_empty());
         let bytes = std::fs::read(&path).unwrap();
         for cut in 0..bytes.len() {
             assert!(read_bytes(&bytes[..cut]).is_err(), "cut at {cut}");

@@ -7,6 +7,7 @@ use indicatif::HumanBytes as human;
 use super::{lattice, lattice::LatticeKind, single, BakeSettings, TransferLayout};
 use crate::error::{Error, Result};
 use crate::volume::grid::{TileLevel, LEAF_LOG2};
+use crate::volume::visibility::{Resolution, MAX_LEVEL};
 use crate::volume::DensityField;
 use glam::IVec3;
 
@@ -68,6 +69,7 @@ impl MemoryEstimate {
         far: u64,
         reflecting: f64,
         threads: usize,
+        visibility: VisibilityBytes,
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
         let one = n * c * 4;
@@ -96,17 +98,101 @@ impl MemoryEstimate {
                 one + far + build.max(transport)
             }
         };
-        let peak = single.max(fit).max(lattice);
+        // - the visibility, beside both: its sweep, then its fit (rows and solves as above).
+        let shape = 2 * one
+            + visibility.held
+            + visibility
+                .working
+                .max(n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES));
+        let peak = single.max(fit).max(lattice).max(shape);
         MemoryEstimate {
             density: field_bytes as u64,
             layout: layout_bytes as u64,
-            transfer: 2 * one,
-            working: peak.saturating_sub(2 * one) + PROCESS_BASELINE,
+            transfer: 2 * one + visibility.held,
+            working: peak.saturating_sub(2 * one + visibility.held) + PROCESS_BASELINE,
         }
     }
 
     pub fn total(&self) -> u64 {
         self.density + self.layout + self.transfer + self.working
+    }
+}
+
+/// What the visibility of a bake ([`crate::transfer::shape`]) holds once built, and what its
+/// sweep holds beside that while it runs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct VisibilityBytes {
+    pub held: u64,
+    pub working: u64,
+}
+
+/// Bytes per value of the visibility while it is swept: the voxel (3 × i32) and the running mean.
+const SWEEP_POINT_BYTES: u64 = 16;
+
+/// What one direction's shadow volume may hold while the visibility is swept, at least: a volume
+/// of huge tiles would need one in proportion to its volume (a 4096³ tile: about 400 GB at the
+/// density's resolution), so its visibility is swept at a coarser level, where the tiles' uniform
+/// interiors lose nothing. Above this floor the density's own bytes are the budget.
+const VISIBILITY_SWEEP_FLOOR: u64 = 256 << 20;
+
+/// One direction's shadow volume over `field`'s density at `level`, estimated: a coarse level
+/// holds an eighth of the blocks per level, each costing [`FAR_BLOCK_COST`] times as much.
+fn sweep_bytes(field: &DensityField, level: usize) -> u64 {
+    let fine = crate::volume::shadow::ShadowVolume::estimate_bytes(&field.grid);
+    match level {
+        0 => fine,
+        l => (FAR_BLOCK_COST * (fine >> (3 * l).min(63)) as f64) as u64,
+    }
+}
+
+/// `wanted`, at the first level from its own whose sweep fits [`VISIBILITY_SWEEP_FLOOR`] or the
+/// density's bytes, whichever is more.
+pub fn visibility_resolution(field: &DensityField, wanted: Resolution) -> Resolution {
+    let budget =
+        VISIBILITY_SWEEP_FLOOR.max((field.grid.memory_bytes() + field.brick_bytes()) as u64);
+    let level = (wanted.level..MAX_LEVEL)
+        .find(|&l| sweep_bytes(field, l) <= budget)
+        .unwrap_or(MAX_LEVEL);
+    Resolution { level, ..wanted }
+}
+
+/// The visibility of `field` at `resolution`, estimated without building it. Kept: its values
+/// (f16) and ρ·V on the level's topology with its bricks, at a coarse level beside that level's
+/// density — each about what the density costs at that level ([`far_field_bytes`]). While it is
+/// swept: one shadow volume at the level, each value's voxel and running mean, and (at a coarse
+/// level) ρ·V on the density's own topology for the fit.
+pub fn visibility_bytes(field: &DensityField, resolution: Resolution) -> VisibilityBytes {
+    let grid = &field.grid;
+    let level = resolution.level;
+    let tiles = |level: TileLevel| grid.tiles(level).count() as u64;
+    // Voxels kept one by one: the leaves' active ones and the 8³ tiles'.
+    let voxels = grid
+        .leaves()
+        .iter()
+        .map(|l| l.active_count() as u64)
+        .sum::<u64>()
+        + tiles(TileLevel::Block) * TileLevel::Block.voxel_count();
+    // A larger tile keeps one value at the density. Coarsened, a 128³ tile halves into 512 tiles
+    // of 8³ and a 4096³ one into 4096 of 128³; 8³ tiles go eight into one a level.
+    let shrink = |n: u64, levels: usize| (n >> (3 * levels).min(63)).max(1);
+    let (node, root) = match level {
+        0 => (1, 1),
+        1 => (512, 4096),
+        l => (shrink(512, l - 1), shrink(4096 * 512, l - 2)),
+    };
+    let values = shrink(voxels, level).min(voxels)
+        + tiles(TileLevel::Node) * node
+        + tiles(TileLevel::Root) * root;
+    let sweep = sweep_bytes(field, level) + SWEEP_POINT_BYTES * values;
+    match level {
+        0 => VisibilityBytes {
+            held: (grid.memory_bytes() + field.brick_bytes()) as u64 + 2 * values,
+            working: sweep,
+        },
+        level => VisibilityBytes {
+            held: 2 * far_field_bytes(field, level) + 2 * values,
+            working: sweep + grid.memory_bytes() as u64,
+        },
     }
 }
 
@@ -309,8 +395,7 @@ pub struct RenderEstimate {
     pub transfer: u64,
     /// The relight's share of `transfer`: held only after the suns are solved.
     march: u64,
-    /// The suns' shadow volumes and fluences and a single-scattering transfer's visibility, where
-    /// not kept from an earlier render.
+    /// The suns' shadow volumes and fluences, where not kept from an earlier render.
     pub light: u64,
     /// A new sun's multiple-scattering solve ([`sun_solve_bytes`]; 0 without one).
     pub solve: u64,
@@ -322,7 +407,7 @@ impl RenderEstimate {
     /// `bricks`: whether the render holds the density's bricks
     /// ([`crate::scene::Scene::render_bricks`]); `relight`: what relighting makes
     /// ([`crate::scene::Scene::relight_plan`]); `coefficient_bytes`: T_ri and F_ms as held;
-    /// `light`: [`crate::scene::Scene::light_plan`]; `solve`: [`sun_solve_bytes`] when a new sun
+    /// `light`: [`crate::scene::Scene::sun_plan`]; `solve`: [`sun_solve_bytes`] when a new sun
     /// will be solved; `image`: [`image_bytes`].
     pub fn new(
         field: &DensityField,
@@ -355,7 +440,7 @@ impl RenderEstimate {
     /// One line for `--dry-run`.
     pub fn describe(&self) -> String {
         format!(
-            "estimated peak memory {} (volume {}, transfer {}, suns and visibility {}, image {}{})",
+            "estimated peak memory {} (volume {}, transfer {}, suns {}, image {}{})",
             human(self.total()),
             human(self.volume),
             human(self.transfer),
@@ -380,7 +465,7 @@ impl RenderEstimate {
         match limit.filter(|l| self.total() > *l) {
             None => Ok(()),
             Some(limit) => Err(Error::Runtime(format!(
-                "this render needs about {} (the volume {}, its transfer {}, suns and visibility {}, the image {}{}) but may use {} (--max-memory); fewer suns, a smaller --res, or a volume with fewer active voxels would fit",
+                "this render needs about {} (the volume {}, its transfer {}, suns {}, the image {}{}) but may use {} (--max-memory); fewer suns, a smaller --res, or a volume with fewer active voxels would fit",
                 human(self.total()),
                 human(self.volume),
                 human(self.transfer),
@@ -432,6 +517,8 @@ fn estimate(
     far: u64,
     reflecting: f64,
 ) -> MemoryEstimate {
+    let resolution =
+        crate::transfer::shape::TransferShape::resolution(field, !settings.single_scatter);
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.brick_bytes(),
         field.brick_bytes(),
@@ -441,6 +528,7 @@ fn estimate(
         far,
         reflecting,
         rayon::current_num_threads(),
+        visibility_bytes(field, resolution),
     )
 }
 

@@ -11,6 +11,7 @@ pub mod lattice;
 mod layout;
 pub mod memory;
 pub mod packing;
+pub mod shape;
 mod single;
 #[cfg(test)]
 mod tests;
@@ -44,6 +45,8 @@ pub struct Transfer {
     /// The lattice that solved F_ms, and that solves the suns' multiple scattering (`None`: the
     /// bake was `--single-scatter`, and so is the suns' light).
     pub lattice: Option<lattice::LatticeKind>,
+    /// What shapes the direct light between nodes (`None`: plain interpolation).
+    pub shape: Option<std::sync::Arc<shape::TransferShape>>,
 }
 
 /// What a transfer holds of its light.
@@ -64,6 +67,11 @@ pub enum TransferLight {
 impl Transfer {
     pub fn coeffs(&self) -> usize {
         self.bands * self.bands
+    }
+
+    /// Bytes the [`shape::TransferShape`] holds.
+    pub fn shape_bytes(&self) -> usize {
+        self.shape.as_ref().map_or(0, |s| s.memory_bytes() as usize)
     }
 
     /// T_ri and F_ms (`None`: relit as read, [`TransferLight::Relit`]).
@@ -106,6 +114,9 @@ pub struct BakeStats {
     /// Bytes of the coarser density levels T_ri's rays march far from their origin.
     pub far_field_bytes: usize,
     pub lattice: Option<lattice::LatticeStats>,
+    /// Sweeping and fitting the visibility that shapes the direct light ([`shape`]).
+    pub visibility_seconds: f64,
+    pub visibility_bytes: u64,
 }
 
 /// Bakes the transfer of `field`: layout, T_ri, then (unless single-scatter) F_ms. The field's
@@ -197,6 +208,13 @@ pub fn bake(
         }
     }
     stats.single_seconds += clock.elapsed().as_secs_f64();
+
+    let clock = std::time::Instant::now();
+    progress.phase("visibility", 0);
+    let resolution = shape::TransferShape::resolution(field, !settings.single_scatter);
+    let shape = shape::TransferShape::build(field, &layout, medium.sigma_t, resolution);
+    stats.visibility_seconds = clock.elapsed().as_secs_f64();
+    stats.visibility_bytes = shape.memory_bytes();
     let transfer = Transfer {
         layout,
         bands: settings.bands,
@@ -206,6 +224,7 @@ pub fn bake(
             f_ms: Coefficients::F32(f_ms),
         },
         lattice: (!settings.single_scatter).then_some(settings.lattice),
+        shape: Some(std::sync::Arc::new(shape)),
     };
     (transfer, stats)
 }
@@ -218,12 +237,7 @@ pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 /// The warning for a transfer whose voxels are too thick to resolve where light enters (see
 /// [`MAX_RESOLVED_CELL_DEPTH`]), naming a `--sigma-t` that clears it and the other flag that helps.
 pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> Option<String> {
-    let stats = density.value_stats()?;
-    let active = density.active_voxels();
-    if active == 0 || stats.sum <= 0.0 {
-        return None;
-    }
-    let mean = stats.sum / active as f64;
+    let mean = mean_density(density)?;
     let voxel = density.transform.voxel_size().min_element();
     let k = scale as f64;
     let depth = cell_depth(medium.sigma_t, k, voxel, mean);
@@ -236,6 +250,20 @@ pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> O
             clearing_sigma_t(k, voxel, mean),
         )
     })
+}
+
+/// The mean active density (`None` when nothing active is positive on the whole).
+fn mean_density(density: &SparseGrid) -> Option<f64> {
+    let stats = density.value_stats()?;
+    let active = density.active_voxels();
+    (active > 0 && stats.sum > 0.0).then(|| stats.sum / active as f64)
+}
+
+/// The mean optical depth across one transfer voxel of `density` at `sigma_t` and `scale`:
+/// σt × K × voxel × mean density (0 without density).
+pub fn mean_cell_depth(density: &SparseGrid, sigma_t: f32, scale: i32) -> f64 {
+    let voxel = density.transform.voxel_size().min_element();
+    mean_density(density).map_or(0.0, |mean| cell_depth(sigma_t, scale as f64, voxel, mean))
 }
 
 /// σt × K × voxel × mean, in the f32 σt the bake uses.

@@ -488,6 +488,13 @@ impl SparseGrid {
             .copied()
     }
 
+    /// The level of the active tile covering voxel `ijk`, if any.
+    pub fn tile_level(&self, ijk: IVec3) -> Option<TileLevel> {
+        TileLevel::ALL
+            .into_iter()
+            .find(|lvl| self.tiles[lvl.index()].contains_key(&(ijk >> lvl.log2() as i32)))
+    }
+
     /// The value at voxel `ijk` (background where nothing active is).
     pub fn value(&self, ijk: IVec3) -> f32 {
         match self.block(ijk >> LEAF_LOG2) {

@@ -4,8 +4,9 @@ use super::*;
 use crate::math::ray::Ray;
 use crate::render::film::Frame;
 use crate::render::relight::Radiance;
+use crate::transfer::shape::TransferShape;
 use crate::volume::grid::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
-use crate::volume::visibility::Visibility;
+use crate::volume::visibility::Resolution;
 use crate::volume::{SparseGrid, Transform};
 use glam::IVec3;
 
@@ -415,7 +416,8 @@ fn transfer_radiance_interpolates_slots() {
 fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution() {
     // A 32³ cube at 12.8 optical depths across: V falls several-fold within a transfer voxel
     // under its faces. Direct light equal to c × the fitted node values of V must come out as
-    // c × the fine V at any point, where plain interpolation gives a straight line.
+    // c × V at any point, at either resolution V is kept at, where plain interpolation gives a
+    // straight line.
     let mut g = SparseGrid::new(Transform::default(), 0.0);
     for l in 0..64 {
         let origin = IVec3::new(l / 16, (l / 4) % 4, l % 4) * 8;
@@ -423,43 +425,73 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
     }
     let field = DensityField::new(g);
     let layout = TransferLayout::build(&field.grid, 6);
-    let visibility = Visibility::build(&field, 0.4);
-    let fitted = crate::transfer::fitted_field(&field.grid, &layout, &visibility.weighted);
-    let c = 3.0;
-    let direct: Vec<[f32; 3]> = fitted.iter().map(|v| [c * v; 3]).collect();
-    let radiance = Radiance::new(&direct, &vec![[0.5; 3]; layout.len()]);
-    let shaped = TransferRadiance::new(&layout, &radiance, Some((&visibility, &fitted)));
-    let plain = TransferRadiance::new(&layout, &radiance, None);
-    let at = |src: &TransferRadiance, q: Vec3| {
-        let mut sum = src.start();
-        src.add(q, field.grid.sample_index(q), 1.0, &mut sum);
-        src.total(sum)
-    };
-    let mut plain_error = 0.0f32;
-    for q in [
-        Vec3::new(0.5, 16.0, 16.0),
-        Vec3::new(2.25, 13.5, 20.0),
-        Vec3::new(16.0, 16.0, 16.0),
-        Vec3::new(30.0, 4.5, 29.75),
-    ] {
-        let rho = field.grid.sample_index(q);
-        let mut sampler = visibility.sampler();
-        let fine = sampler.sample(q) / rho;
-        let [d, i] = at(&shaped, q);
-        assert!(
-            (d[0] - c * fine).abs() < 1e-4 * c,
-            "{q}: {} vs {}",
-            d[0],
-            c * fine
+    for resolution in [Resolution::FINE, Resolution::COARSE] {
+        let shape = TransferShape::build(&field, &layout, 0.4, resolution);
+        let c = 3.0;
+        let direct: Vec<[f32; 3]> = shape.fitted.iter().map(|v| [c * v; 3]).collect();
+        let radiance = Radiance::new(&direct, &vec![[0.5; 3]; layout.len()]);
+        let shaped = TransferRadiance::new(
+            &layout,
+            &radiance,
+            Some(Shaping {
+                visibility: &shape.visibility,
+                fitted: &shape.fitted,
+                regained: 0.0,
+            }),
         );
-        assert!(
-            (i[0] - 0.5).abs() < 1e-6,
-            "the indirect light is not reshaped"
+        let plain = TransferRadiance::new(&layout, &radiance, None);
+        let at = |src: &TransferRadiance, q: Vec3| {
+            let mut sum = src.start();
+            src.add(q, field.grid.sample_index(q), 1.0, &mut sum);
+            src.total(sum)
+        };
+        let mut plain_error = 0.0f32;
+        for q in [
+            Vec3::new(0.5, 16.0, 16.0),
+            Vec3::new(2.25, 13.5, 20.0),
+            Vec3::new(16.0, 16.0, 16.0),
+            Vec3::new(30.0, 4.5, 29.75),
+        ] {
+            let rho = field.grid.sample_index(q);
+            let v = shape.visibility.sampler().at(q, rho).unwrap();
+            let [d, i] = at(&shaped, q);
+            assert!(
+                (d[0] - c * v).abs() < 1e-4 * c,
+                "{resolution:?} {q}: {} vs {}",
+                d[0],
+                c * v
+            );
+            assert!(
+                (i[0] - 0.5).abs() < 1e-6,
+                "the indirect light is not reshaped"
+            );
+            plain_error = plain_error.max((at(&plain, q)[0][0] / (c * v) - 1.0).abs());
+        }
+        // Without the shape the straight line between nodes misses the fall by far.
+        assert!(plain_error > 0.1, "{resolution:?}: {plain_error}");
+        // Given all back, the shape only moves light between the parts: a furnace's sum stays.
+        let furnace = TransferRadiance::new(
+            &layout,
+            &radiance,
+            Some(Shaping {
+                visibility: &shape.visibility,
+                fitted: &shape.fitted,
+                regained: 1.0,
+            }),
         );
-        plain_error = plain_error.max((at(&plain, q)[0][0] / (c * fine) - 1.0).abs());
+        for q in [Vec3::new(0.5, 16.0, 16.0), Vec3::new(30.0, 4.5, 29.75)] {
+            let ([d, i], [pd, pi]) = (at(&furnace, q), at(&plain, q));
+            assert!((d[0] - pd[0]).abs() > 1e-3, "{q}: the shape moved nothing");
+            assert!(
+                (d[0] + i[0] - pd[0] - pi[0]).abs() < 1e-5,
+                "{q}: {} + {} vs {} + {}",
+                d[0],
+                i[0],
+                pd[0],
+                pi[0]
+            );
+        }
     }
-    // Without the shape the straight line between nodes misses the fall by far.
-    assert!(plain_error > 0.1, "{plain_error}");
 }
 
 #[test]
