@@ -188,15 +188,11 @@ pub struct TransferRadiance<'a> {
 }
 
 /// What shapes the direct light: the density's V with its fitted value per slot
-/// ([`crate::transfer::shape`]), and the share of the direct light the shape takes from a point
-/// that comes back to it scattered.
+/// ([`crate::transfer::shape`]).
 #[derive(Clone, Copy)]
 pub struct Shaping<'a> {
     pub visibility: &'a Visibility,
     pub fitted: &'a [f32],
-    /// The share of the light the shape moves that multiple scattering gives back
-    /// ([`crate::transfer::shape::regained`]; 0 for single scattering).
-    pub regained: f32,
 }
 
 /// Smallest interpolated V the direct light is reshaped by: below it the node values are too
@@ -224,16 +220,12 @@ impl<'a> TransferRadiance<'a> {
 
     /// Moves the weights gathered in the current cell into the radiance sum.
     fn flush(&self, sum: &mut CellSum) {
-        let regained = self.shaping.map_or(0.0, |s| s.regained);
         if let Some(slots) = sum.slots {
             for ((&slot, &wd), &wi) in slots.iter().zip(&sum.direct).zip(&sum.indirect) {
                 let node = &self.nodes[slot as usize];
-                // wi − wd: the direct light's weight the shape took away (negative where it
-                // added), the plain weight being the indirect light's.
-                let back = regained * (wi - wd);
                 for ch in 0..3 {
                     sum.radiance[0][ch] += wd * node[ch];
-                    sum.radiance[1][ch] += wi * node[3 + ch] + back * node[ch];
+                    sum.radiance[1][ch] += wi * node[3 + ch];
                 }
             }
         }

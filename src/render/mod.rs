@@ -23,7 +23,6 @@ use relight::relight;
 use crate::error::Result;
 use crate::io::image::{ImageBuf, Layer};
 use crate::light::Lighting;
-use crate::transfer::shape::regained;
 use crate::transfer::{Transfer, PHASE};
 use crate::volume::{DensityField, SparseGrid};
 use sunlight::SunLight;
@@ -141,10 +140,6 @@ pub fn render_volume<R>(
                 .map(|s| march::Shaping {
                     visibility: &s.visibility,
                     fitted: &s.fitted,
-                    regained: match transfer.lattice {
-                        Some(_) => regained(transfer.medium.albedo, s.cell_depth),
-                        None => 0.0,
-                    },
                 }),
         ),
         march::SunRadiance::new(

@@ -130,8 +130,6 @@ pub struct Header {
     pub visibility_level: usize,
     pub visibility_directions: usize,
     pub visibility_voxels: u64,
-    /// The mean optical depth across a transfer voxel the shape was baked with.
-    pub cell_depth: f32,
 }
 
 /// A cache's contents.
@@ -243,8 +241,7 @@ pub fn header(
     precision: Precision,
 ) -> Header {
     let t = density.transform;
-    // A transfer without its visibility is refused by `write`; its header says so by counting
-    // no directions.
+    // A transfer with multiple scattering has no visibility: no directions, no values.
     let visibility = transfer.shape.as_ref().map(|s| &s.visibility);
     Header {
         sigma_t: transfer.medium.sigma_t,
@@ -275,7 +272,6 @@ pub fn header(
         visibility_level: visibility.map_or(0, |v| v.resolution.level),
         visibility_directions: visibility.map_or(0, |v| v.resolution.directions),
         visibility_voxels: visibility.map_or(0, |v| v.values().len() as u64),
-        cell_depth: transfer.shape.as_ref().map_or(0.0, |s| s.cell_depth),
     }
 }
 
@@ -291,12 +287,6 @@ pub fn write(
     let Some((t_ri, f_ms)) = transfer.coefficients() else {
         return Err(Error::Runtime(format!(
             "{}: a transfer relit as it was read has no coefficients to write",
-            path.display()
-        )));
-    };
-    let Some(shape) = &transfer.shape else {
-        return Err(Error::Runtime(format!(
-            "{}: a transfer without its visibility cannot be written",
             path.display()
         )));
     };
@@ -352,11 +342,18 @@ pub fn write(
                 packing::put_coefficients(s, &values.to_f32(coeffs), coeffs, header.coefficients)
             })?;
         }
+        let shape = transfer.shape.as_deref();
         put_section(&mut w, |s| {
-            s.shuffled(shape.fitted.iter().map(|v| v.to_le_bytes()))
+            s.shuffled(
+                shape
+                    .iter()
+                    .flat_map(|s| &s.fitted)
+                    .map(|v| v.to_le_bytes()),
+            )
         })?;
         put_section(&mut w, |s| {
-            s.shuffled(shape.visibility.values().iter().map(|v| v.to_le_bytes()))
+            let values = shape.iter().flat_map(|s| s.visibility.values());
+            s.shuffled(values.map(|v| v.to_le_bytes()))
         })?;
         let sum = w.hash.digest();
         w.inner.write_all(&sum.to_le_bytes())?;
@@ -546,8 +543,6 @@ fn parse_header(data: &[u8], file_len: u64) -> std::result::Result<(Header, usiz
     if !(1..=crate::light::sh::MAX_BANDS).contains(&header.bands)
         || header.scale < 1
         || header.visibility_level > crate::volume::visibility::MAX_LEVEL
-        || header.visibility_directions == 0
-        || !(header.cell_depth >= 0.0 && header.cell_depth.is_finite())
     {
         return Err("the header's bake settings are invalid".into());
     }
@@ -743,7 +738,9 @@ fn decode(
             TransferLight::Relit(relit.finish())
         }
     };
-    let fitted = body.section(|r| r.values(n, f32::from_le_bytes))?;
+    // Directions 0: no visibility (a transfer with multiple scattering).
+    let shaped = header.visibility_directions > 0;
+    let fitted = body.section(|r| r.values(if shaped { n } else { 0 }, f32::from_le_bytes))?;
     let values = body.section(|r| {
         r.values(
             usize::try_from(header.visibility_voxels).unwrap_or(usize::MAX),
@@ -757,8 +754,15 @@ fn decode(
         level: header.visibility_level,
         directions: header.visibility_directions,
     };
-    let visibility = Visibility::from_values(&density, resolution, values)
-        .ok_or("the visibility's values do not match the density")?;
+    let shape = match shaped {
+        true => {
+            let visibility = Visibility::from_values(&density, resolution, values)
+                .ok_or("the visibility's values do not match the density")?;
+            Some(Arc::new(TransferShape { visibility, fitted }))
+        }
+        false if values.is_empty() => None,
+        false => return Err("the visibility's values do not match the density".into()),
+    };
     let transfer = Transfer {
         layout,
         bands: settings.bands,
@@ -768,11 +772,7 @@ fn decode(
         },
         light,
         lattice: (!settings.single_scatter).then_some(settings.lattice),
-        shape: Some(Arc::new(TransferShape {
-            visibility,
-            fitted,
-            cell_depth: header.cell_depth,
-        })),
+        shape,
     };
     Ok(Cache {
         header,
@@ -804,7 +804,7 @@ mod tests {
             &crate::volume::DensityField::new(g.clone()),
             &layout,
             2.0,
-            Resolution::COARSE,
+            Resolution::FINE,
         );
         let transfer = Transfer {
             layout,
@@ -820,15 +820,23 @@ mod tests {
             lattice: Some(LatticeKind::All),
             shape: Some(Arc::new(shape)),
         };
-        let settings = BakeSettings {
+        let h = header(&g, &transfer, &tiny_settings(), tiny_origin(), precision);
+        (g, transfer, h)
+    }
+
+    fn tiny_settings() -> BakeSettings {
+        BakeSettings {
             bands: 2,
             scale: 6,
             samples: 64,
             lattice: LatticeKind::All,
             single_scatter: false,
             seed: 7,
-        };
-        let origin = Origin {
+        }
+    }
+
+    fn tiny_origin() -> Origin {
+        Origin {
             source: Source {
                 name: "x.vdb".into(),
                 size: 1,
@@ -837,9 +845,7 @@ mod tests {
             },
             grid: "density".into(),
             requested_grid: None,
-        };
-        let h = header(&g, &transfer, &settings, origin, precision);
-        (g, transfer, h)
+        }
     }
 
     fn read_bytes(data: &[u8]) -> std::result::Result<Cache, String> {
@@ -943,9 +949,10 @@ mod tests {
         write(&path, &h, &g, &t).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         assert!(read_bytes(&with_header(&bytes, &h)).is_ok());
-        let lies: [fn(&mut Header); 8] = [
+        let lies: [fn(&mut Header); 9] = [
             |h| h.visibility_voxels += 1,
-            |h| h.visibility_level = 0,
+            |h| h.visibility_level = 1,
+            |h| h.visibility_directions = 0,
             |h| h.visibility_level = 99,
             |h| h.leaves += 1,
             |h| h.leaves = u64::MAX,
@@ -975,6 +982,18 @@ mod tests {
         assert_eq!(back_shape.fitted, shape.fitted);
         assert_eq!(back_shape.visibility.values(), shape.visibility.values());
         assert!(!shape.visibility.values().is_empty());
+        // A transfer with multiple scattering keeps no visibility.
+        let unshaped = Transfer { shape: None, ..t };
+        let h = header(
+            &g,
+            &unshaped,
+            &tiny_settings(),
+            tiny_origin(),
+            Precision::F32,
+        );
+        assert_eq!((h.visibility_directions, h.visibility_voxels), (0, 0));
+        write(&path, &h, &g, &unshaped).unwrap();
+        assert!(read(&path).unwrap().transfer.shape.is_none());
         let bytes = std::fs::read(&path).unwrap();
         for cut in 0..bytes.len() {
             assert!(read_bytes(&bytes[..cut]).is_err(), "cut at {cut}");

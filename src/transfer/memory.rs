@@ -517,8 +517,13 @@ fn estimate(
     far: u64,
     reflecting: f64,
 ) -> MemoryEstimate {
-    let resolution =
-        crate::transfer::shape::TransferShape::resolution(field, !settings.single_scatter);
+    let visibility = match settings.single_scatter {
+        true => visibility_bytes(
+            field,
+            crate::transfer::shape::TransferShape::resolution(field),
+        ),
+        false => VisibilityBytes::default(),
+    };
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.brick_bytes(),
         field.brick_bytes(),
@@ -528,7 +533,7 @@ fn estimate(
         far,
         reflecting,
         rayon::current_num_threads(),
-        visibility_bytes(field, resolution),
+        visibility,
     )
 }
 

@@ -114,7 +114,8 @@ pub struct BakeStats {
     /// Bytes of the coarser density levels T_ri's rays march far from their origin.
     pub far_field_bytes: usize,
     pub lattice: Option<lattice::LatticeStats>,
-    /// Sweeping and fitting the visibility that shapes the direct light ([`shape`]).
+    /// Sweeping and fitting the visibility that shapes a single-scattering transfer's direct
+    /// light ([`shape`]; 0 for a transfer with multiple scattering).
     pub visibility_seconds: f64,
     pub visibility_bytes: u64,
 }
@@ -209,12 +210,17 @@ pub fn bake(
     }
     stats.single_seconds += clock.elapsed().as_secs_f64();
 
-    let clock = std::time::Instant::now();
-    progress.phase("visibility", 0);
-    let resolution = shape::TransferShape::resolution(field, !settings.single_scatter);
-    let shape = shape::TransferShape::build(field, &layout, medium.sigma_t, resolution);
-    stats.visibility_seconds = clock.elapsed().as_secs_f64();
-    stats.visibility_bytes = shape.memory_bytes();
+    // A single-scattering transfer's direct light is shaped by the density's visibility
+    // (`shape`); a transfer with multiple scattering is not.
+    let shape = settings.single_scatter.then(|| {
+        let clock = std::time::Instant::now();
+        progress.phase("visibility", 0);
+        let resolution = shape::TransferShape::resolution(field);
+        let shape = shape::TransferShape::build(field, &layout, medium.sigma_t, resolution);
+        stats.visibility_seconds = clock.elapsed().as_secs_f64();
+        stats.visibility_bytes = shape.memory_bytes();
+        std::sync::Arc::new(shape)
+    });
     let transfer = Transfer {
         layout,
         bands: settings.bands,
@@ -224,7 +230,7 @@ pub fn bake(
             f_ms: Coefficients::F32(f_ms),
         },
         lattice: (!settings.single_scatter).then_some(settings.lattice),
-        shape: Some(std::sync::Arc::new(shape)),
+        shape,
     };
     (transfer, stats)
 }
@@ -257,13 +263,6 @@ fn mean_density(density: &SparseGrid) -> Option<f64> {
     let stats = density.value_stats()?;
     let active = density.active_voxels();
     (active > 0 && stats.sum > 0.0).then(|| stats.sum / active as f64)
-}
-
-/// The mean optical depth across one transfer voxel of `density` at `sigma_t` and `scale`:
-/// σt × K × voxel × mean density (0 without density).
-pub fn mean_cell_depth(density: &SparseGrid, sigma_t: f32, scale: i32) -> f64 {
-    let voxel = density.transform.voxel_size().min_element();
-    mean_density(density).map_or(0.0, |mean| cell_depth(sigma_t, scale as f64, voxel, mean))
 }
 
 /// σt × K × voxel × mean, in the f32 σt the bake uses.

@@ -39,21 +39,13 @@ pub struct Resolution {
 }
 
 impl Resolution {
-    /// For single scattering, whose light is all direct and all shaped by V. Measured at 256×144
-    /// against the path tracer (studio map, torus at 1.92 / cloud at 5.4 optical depths per
-    /// transfer voxel, single scattering): the density and 16 directions 9.0 / 14.8 %, 8
-    /// directions 9.6 / 15.9 %, the 2× mean and 16 directions 11.0 / 19.9 %.
+    /// What a single-scattering transfer is shaped by. Measured at 256×144 against the path
+    /// tracer (studio map, torus at 1.92 / cloud at 5.4 optical depths per transfer voxel, single
+    /// scattering): the density and 16 directions 9.0 / 14.8 %, 8 directions 9.6 / 15.9 %, the 2×
+    /// mean and 16 directions 11.0 / 19.9 %.
     pub const FINE: Resolution = Resolution {
         level: 0,
         directions: 16,
-    };
-    /// For multiple scattering, whose direct light is the share 1 − albedo of a node's: the same
-    /// scenes by default settings (the cloud at σt 1) 11.8 / 14.4 % with the 2× mean and 8
-    /// directions, against 12.3 / 14.8 % with the density and 16 directions, at an eighth of the
-    /// memory and a fifth of the time (torus300: 1.75 s against 8.9 s).
-    pub const COARSE: Resolution = Resolution {
-        level: 1,
-        directions: 8,
     };
 }
 
@@ -373,6 +365,12 @@ mod tests {
         mean / directions as f32
     }
 
+    /// V on the density's 2× mean over 8 directions.
+    const COARSE: Resolution = Resolution {
+        level: 1,
+        directions: 8,
+    };
+
     /// 4³ leaves of density 1: 32³ voxels.
     fn cube() -> DensityField {
         let mut grid = SparseGrid::new(Transform::default(), 0.0);
@@ -445,7 +443,7 @@ mod tests {
         // is interpolated.
         let field = cube();
         let sigma_t = 0.1;
-        let v = Visibility::build(&field, sigma_t, Resolution::COARSE);
+        let v = Visibility::build(&field, sigma_t, COARSE);
         assert_eq!(v.values().len(), 16 * 16 * 16);
         let mut sampler = v.sampler();
         for (p, tolerance) in [
@@ -454,7 +452,7 @@ mod tests {
             (Vec3::new(2.0, 29.0, 9.0), 0.04),
             (Vec3::new(17.2, 3.9, 25.0), 0.04),
         ] {
-            let want = cube_visibility_over(p, 32.0, sigma_t, Resolution::COARSE.directions);
+            let want = cube_visibility_over(p, 32.0, sigma_t, COARSE.directions);
             let got = sampler.at(p, 1.0).unwrap();
             assert!(
                 (got - want).abs() < tolerance * want,
@@ -468,7 +466,7 @@ mod tests {
     #[test]
     fn stored_values_rebuild_the_same_visibility() {
         let field = cube();
-        for resolution in [Resolution::FINE, Resolution::COARSE] {
+        for resolution in [Resolution::FINE, COARSE] {
             let v = Visibility::build(&field, 0.2, resolution);
             let back = Visibility::from_values(&field.grid, resolution, v.values().to_vec())
                 .expect("the values fit the density");
@@ -485,7 +483,7 @@ mod tests {
         // A 128³ tile halves into 512 tiles of 8³ coarse voxels: 512 values, not 512².
         let mut grid = SparseGrid::new(Transform::default(), 0.0);
         grid.insert_tile(TileLevel::Node, IVec3::ZERO, 0.5);
-        let v = Visibility::build(&DensityField::new(grid), 0.04, Resolution::COARSE);
+        let v = Visibility::build(&DensityField::new(grid), 0.04, COARSE);
         assert_eq!(v.values().len(), 512);
         // The coarse tile at the cube's centre sees it as the fine tile's centre does, to the
         // directions' quadrature.

@@ -425,7 +425,11 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
     }
     let field = DensityField::new(g);
     let layout = TransferLayout::build(&field.grid, 6);
-    for resolution in [Resolution::FINE, Resolution::COARSE] {
+    let coarse = Resolution {
+        level: 1,
+        directions: 8,
+    };
+    for resolution in [Resolution::FINE, coarse] {
         let shape = TransferShape::build(&field, &layout, 0.4, resolution);
         let c = 3.0;
         let direct: Vec<[f32; 3]> = shape.fitted.iter().map(|v| [c * v; 3]).collect();
@@ -436,7 +440,6 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
             Some(Shaping {
                 visibility: &shape.visibility,
                 fitted: &shape.fitted,
-                regained: 0.0,
             }),
         );
         let plain = TransferRadiance::new(&layout, &radiance, None);
@@ -469,28 +472,6 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
         }
         // Without the shape the straight line between nodes misses the fall by far.
         assert!(plain_error > 0.1, "{resolution:?}: {plain_error}");
-        // Given all back, the shape only moves light between the parts: a furnace's sum stays.
-        let furnace = TransferRadiance::new(
-            &layout,
-            &radiance,
-            Some(Shaping {
-                visibility: &shape.visibility,
-                fitted: &shape.fitted,
-                regained: 1.0,
-            }),
-        );
-        for q in [Vec3::new(0.5, 16.0, 16.0), Vec3::new(30.0, 4.5, 29.75)] {
-            let ([d, i], [pd, pi]) = (at(&furnace, q), at(&plain, q));
-            assert!((d[0] - pd[0]).abs() > 1e-3, "{q}: the shape moved nothing");
-            assert!(
-                (d[0] + i[0] - pd[0] - pi[0]).abs() < 1e-5,
-                "{q}: {} + {} vs {} + {}",
-                d[0],
-                i[0],
-                pd[0],
-                pi[0]
-            );
-        }
     }
 }
 
