@@ -98,12 +98,13 @@ impl MemoryEstimate {
                 one + far + build.max(transport)
             }
         };
-        // - the visibility, beside both: its sweep, then its fit (rows and solves as above).
+        // - the visibility, beside both: its sweep, then the visibility built and its fit (rows
+        //   and solves as above).
+        let rows = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
         let shape = 2 * one
-            + visibility.held
             + visibility
-                .working
-                .max(n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES));
+                .sweep
+                .max(visibility.held + visibility.fit + rows);
         let peak = single.max(fit).max(lattice).max(shape);
         MemoryEstimate {
             density: field_bytes as u64,
@@ -118,12 +119,13 @@ impl MemoryEstimate {
     }
 }
 
-/// What the visibility of a bake ([`crate::transfer::shape`]) holds once built, and what its
-/// sweep holds beside that while it runs.
+/// What the visibility of a bake ([`crate::transfer::shape`]) holds while it is swept, once
+/// built, and beside that while it is fitted.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct VisibilityBytes {
+    pub sweep: u64,
     pub held: u64,
-    pub working: u64,
+    pub fit: u64,
 }
 
 /// Bytes per value of the visibility while it is swept: the voxel (3 × i32) and the running mean.
@@ -156,11 +158,12 @@ pub fn visibility_resolution(field: &DensityField, wanted: Resolution) -> Resolu
     Resolution { level, ..wanted }
 }
 
-/// The visibility of `field` at `resolution`, estimated without building it. Kept: its values
-/// (f16) and ρ·V on the level's topology with its bricks, at a coarse level beside that level's
-/// density — each about what the density costs at that level ([`far_field_bytes`]). While it is
-/// swept: one shadow volume at the level, each value's voxel and running mean, and (at a coarse
-/// level) ρ·V on the density's own topology for the fit.
+/// The visibility of `field` at `resolution`, estimated without building it. While it is swept:
+/// one shadow volume at the level and each value's voxel and running mean (at a coarse level
+/// beside that level's density). Kept: its values (f16) and ρ·V on the level's topology with its
+/// bricks, at a coarse level beside that level's density — each about what the density costs at
+/// that level ([`far_field_bytes`]). While it is fitted, at a coarse level: ρ·V on the density's
+/// own topology.
 pub fn visibility_bytes(field: &DensityField, resolution: Resolution) -> VisibilityBytes {
     let grid = &field.grid;
     let level = resolution.level;
@@ -186,13 +189,18 @@ pub fn visibility_bytes(field: &DensityField, resolution: Resolution) -> Visibil
     let sweep = sweep_bytes(field, level) + SWEEP_POINT_BYTES * values;
     match level {
         0 => VisibilityBytes {
+            sweep,
             held: (grid.memory_bytes() + field.brick_bytes()) as u64 + 2 * values,
-            working: sweep,
+            fit: 0,
         },
-        level => VisibilityBytes {
-            held: 2 * far_field_bytes(field, level) + 2 * values,
-            working: sweep + grid.memory_bytes() as u64,
-        },
+        level => {
+            let coarse = far_field_bytes(field, level);
+            VisibilityBytes {
+                sweep: sweep + coarse,
+                held: 2 * coarse + 2 * values,
+                fit: grid.memory_bytes() as u64,
+            }
+        }
     }
 }
 
