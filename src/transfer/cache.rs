@@ -144,7 +144,7 @@ impl Header {
     pub fn describe(&self, path: &Path, size: u64) -> String {
         let h = self;
         format!(
-        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients, {} density\n  visibility  {} values at 1/{} resolution, {} directions\n",
+        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients, {} density\n  visibility  {}\n",
         path.display(),
         VERSION,
         indicatif::HumanBytes(size),
@@ -166,9 +166,14 @@ impl Header {
         h.transfer_voxels,
         h.coefficients.name(),
         h.density.name(),
-        h.visibility_voxels,
-        1u64 << h.visibility_level.min(63),
-        h.visibility_directions,
+        match h.visibility_directions {
+            0 => "none (only single scattering is shaped)".to_string(),
+            d => format!(
+                "{} values at 1/{} resolution, {d} directions",
+                h.visibility_voxels,
+                1u64 << h.visibility_level.min(63)
+            ),
+        },
     )
     }
 
