@@ -243,7 +243,12 @@ pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 /// The warning for a transfer whose voxels are too thick to resolve where light enters (see
 /// [`MAX_RESOLVED_CELL_DEPTH`]), naming a `--sigma-t` that clears it and the other flag that helps.
 pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> Option<String> {
-    let mean = mean_density(density)?;
+    let stats = density.value_stats()?;
+    let active = density.active_voxels();
+    if active == 0 || stats.sum <= 0.0 {
+        return None;
+    }
+    let mean = stats.sum / active as f64;
     let voxel = density.transform.voxel_size().min_element();
     let k = scale as f64;
     let depth = cell_depth(medium.sigma_t, k, voxel, mean);
@@ -256,13 +261,6 @@ pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> O
             clearing_sigma_t(k, voxel, mean),
         )
     })
-}
-
-/// The mean active density (`None` when nothing active is positive on the whole).
-fn mean_density(density: &SparseGrid) -> Option<f64> {
-    let stats = density.value_stats()?;
-    let active = density.active_voxels();
-    (active > 0 && stats.sum > 0.0).then(|| stats.sum / active as f64)
 }
 
 /// σt × K × voxel × mean, in the f32 σt the bake uses.

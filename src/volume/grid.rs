@@ -480,19 +480,23 @@ impl SparseGrid {
         Block::Constant(self.tile_value(key << LEAF_LOG2).unwrap_or(self.background))
     }
 
-    /// The value of the active tile covering voxel `ijk`, if any (deepest level first).
+    /// The active tile covering voxel `ijk`, if any (deepest level first): its level and value.
+    fn tile(&self, ijk: IVec3) -> Option<(TileLevel, f32)> {
+        TileLevel::ALL.into_iter().find_map(|lvl| {
+            self.tiles[lvl.index()]
+                .get(&(ijk >> lvl.log2() as i32))
+                .map(|&v| (lvl, v))
+        })
+    }
+
+    /// The value of the active tile covering voxel `ijk`, if any.
     fn tile_value(&self, ijk: IVec3) -> Option<f32> {
-        TileLevel::ALL
-            .iter()
-            .find_map(|lvl| self.tiles[lvl.index()].get(&(ijk >> lvl.log2() as i32)))
-            .copied()
+        self.tile(ijk).map(|(_, v)| v)
     }
 
     /// The level of the active tile covering voxel `ijk`, if any.
     pub fn tile_level(&self, ijk: IVec3) -> Option<TileLevel> {
-        TileLevel::ALL
-            .into_iter()
-            .find(|lvl| self.tiles[lvl.index()].contains_key(&(ijk >> lvl.log2() as i32)))
+        self.tile(ijk).map(|(lvl, _)| lvl)
     }
 
     /// The value at voxel `ijk` (background where nothing active is).

@@ -136,43 +136,32 @@ fn units(grid: &SparseGrid, fine: &SparseGrid, level: usize) -> Vec<Unit> {
         .tiles(TileLevel::Block)
         .map(|(o, _)| o)
         .partition(|&o| inside_large_tile(o));
-    let mut voxels: Vec<Unit> = grid
+    let mut voxels: Vec<(IVec3, [u64; 8])> = grid
         .leaves()
         .iter()
-        .map(|l| Unit::Voxels {
-            origin: l.origin,
-            mask: l.mask,
-        })
-        .chain(blocks.into_iter().map(|origin| Unit::Voxels {
-            origin,
-            mask: [u64::MAX; 8],
-        }))
+        .map(|l| (l.origin, l.mask))
+        .chain(blocks.into_iter().map(|o| (o, [u64::MAX; 8])))
         .collect();
-    let origin = |u: &Unit| match *u {
-        Unit::Voxels { origin, .. } | Unit::Tile { origin, .. } => origin.to_array(),
-    };
-    voxels.sort_unstable_by_key(origin);
-    let mut tiles: Vec<Unit> = large
+    voxels.sort_unstable_by_key(|(o, _)| o.to_array());
+    let mut tiles: Vec<(TileLevel, IVec3)> = large
         .into_iter()
-        .map(|origin| Unit::Tile {
-            level: TileLevel::Block,
-            origin,
-        })
+        .map(|o| (TileLevel::Block, o))
         .chain(
             [TileLevel::Node, TileLevel::Root]
                 .into_iter()
-                .flat_map(|level| {
-                    grid.tiles(level)
-                        .map(move |(origin, _)| Unit::Tile { level, origin })
-                }),
+                .flat_map(|level| grid.tiles(level).map(move |(o, _)| (level, o))),
         )
         .collect();
-    tiles.sort_unstable_by_key(|u| match *u {
-        Unit::Tile { level, origin } => (level.log2(), origin.to_array()),
-        Unit::Voxels { origin, .. } => (0, origin.to_array()),
-    });
-    voxels.extend(tiles);
+    tiles.sort_unstable_by_key(|(level, o)| (level.log2(), o.to_array()));
     voxels
+        .into_iter()
+        .map(|(origin, mask)| Unit::Voxels { origin, mask })
+        .chain(
+            tiles
+                .into_iter()
+                .map(|(level, origin)| Unit::Tile { level, origin }),
+        )
+        .collect()
 }
 
 /// The voxels of `units`, in value order.
@@ -251,7 +240,7 @@ impl Visibility {
         }
         drop(points);
         let values = mean.into_iter().map(f16::from_f32).collect();
-        Visibility::from_parts(&field.grid, resolution, values, coarse)
+        Visibility::from_parts(&field.grid, resolution, &units, values, coarse)
     }
 
     /// The visibility of `fine` whose values a cache holds (`values`, in [`Visibility::values`]'
@@ -264,23 +253,23 @@ impl Visibility {
         let coarse =
             (resolution.level > 0).then(|| DensityField::new(coarsened(fine, resolution.level)));
         let grid = coarse.as_ref().map_or(fine, |c| &c.grid);
-        let count: usize = units(grid, fine, resolution.level)
-            .iter()
-            .map(Unit::count)
-            .sum();
-        (count == values.len()).then(|| Visibility::from_parts(fine, resolution, values, coarse))
+        let units = units(grid, fine, resolution.level);
+        let count: usize = units.iter().map(Unit::count).sum();
+        (count == values.len())
+            .then(|| Visibility::from_parts(fine, resolution, &units, values, coarse))
     }
 
+    /// The visibility whose values `values` are kept at `units` of the level's density.
     fn from_parts(
         fine: &SparseGrid,
         resolution: Resolution,
+        units: &[Unit],
         values: Vec<f16>,
         coarse: Option<DensityField>,
     ) -> Visibility {
         let grid = coarse.as_ref().map_or(fine, |c| &c.grid);
-        let units = units(grid, fine, resolution.level);
         let v: Vec<f32> = values.iter().map(|v| v.to_f32()).collect();
-        let weighted = assemble(grid, &units, &v);
+        let weighted = assemble(grid, units, &v);
         let bricks = Bricks::build(&weighted);
         Visibility {
             resolution,
