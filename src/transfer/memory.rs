@@ -215,10 +215,11 @@ const FIT_ROW_BYTES: u64 = 8 + 27 * (4 + 8);
 /// Bytes per node of one column's conjugate-gradient solve: ten f64 vectors.
 const FIT_SOLVE_BYTES: u64 = 10 * 8;
 
-/// One transport's state beside the links: per node its fluence, emission and next emission,
-/// and per reflecting cell a buffer per pair of opposite directions.
+/// One transport's state beside the links: per node its fluence, emission and next emission and
+/// the fluence before the last generation (for the tail), and per reflecting cell a buffer per
+/// pair of opposite directions.
 fn transport_bytes(voxels: usize, directions: usize, reflecting: f64) -> u64 {
-    let rows = 3.0 + reflecting * (directions / 2) as f64;
+    let rows = 4.0 + reflecting * (directions / 2) as f64;
     (rows * voxels as f64) as u64 * TRANSPORT_ROW_BYTES
 }
 
