@@ -829,7 +829,7 @@ fn sweep<const INFLOW: bool>(
 
 /// Transports one drive; stops by the energy criterion when `stop` is `None` (the chunk holding
 /// the DC term, or a sun), else runs exactly the generations of `stop`. Returns the fluence per
-/// node (its first `width` lanes), the tail added (module doc, "Generations").
+/// node (its first `width` lanes), with the tail of the generations not swept added (module doc).
 fn transport_chunk(
     links: &Links,
     first: &Source,
