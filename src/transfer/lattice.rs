@@ -289,7 +289,8 @@ pub struct LatticeStats {
     /// total: the tail added in the last generation's shape.
     pub remaining: f64,
     pub converged: bool,
-    /// The ratio of the last two generations' energies, which the tail extrapolates.
+    /// The ratio of the last two generations' energies, which the tail extrapolates; 0 unless
+    /// the energy criterion stopped the run.
     pub ratio: f64,
 }
 
@@ -921,11 +922,8 @@ fn transport_chunk(
         ..
     } = state;
     drop(reflected);
-    let tail = match stop {
-        Some(s) => tail_factor(s.ratio),
-        None if stats.converged => tail_factor(stats.ratio),
-        None => 0.0,
-    };
+    // `ratio` stays 0 (no tail) unless the energy criterion stopped the run.
+    let tail = tail_factor(stop.map_or(stats.ratio, |s| s.ratio));
     if tail > 0.0 && before.len() * NODE_ROWS == nodes.len() {
         for (node, b) in nodes.chunks_exact_mut(NODE_ROWS).zip(&before) {
             for c in 0..CHUNK / 4 {
@@ -1039,10 +1037,7 @@ impl Lattice {
         let (head, stats) = transport_chunk(&self.links, &first, drive((0, 1)), None);
         let stop = Stop {
             generations: stats.generations,
-            ratio: match stats.converged {
-                true => stats.ratio,
-                false => 0.0,
-            },
+            ratio: stats.ratio,
         };
         add(f_ms, (0, 1), &head);
         drop(head);
