@@ -11,7 +11,9 @@
 //!
 //! **One step.** Density is taken at the step's midpoint and held over its length Δ, so the step's
 //! transmittance is exactly e^{−σt Δ} and the in-scatter integral ∫₀^Δ e^{−σt s} σs Ls ds is exactly
-//! albedo·(1 − e^{−σt Δ})·Ls, weighted by the transmittance Tr in front of the step.
+//! albedo·(1 − e^{−σt Δ})·Ls, weighted by the transmittance Tr in front of the step. Steps are
+//! never split: with or without suns a ray's transmittance is the same; only a sun's light, which
+//! can fall by e^{−τ} within a thick step, is summed over sub-steps ([`SunRadiance`]).
 //!
 //! Units: the ray is parametrised by *world* distance t (the index-space direction is the world
 //! direction divided by the voxel scale per axis), so σt = sigma_t·ρ per world unit multiplies a
@@ -45,62 +47,89 @@ pub const TERMINATION_TRANSMITTANCE: f32 = 1e-3;
 /// chain is unchanged (2.75 %). Half the steps of 0.5 voxel, at half the march's cost.
 pub const DEFAULT_STEP_VOXELS: f32 = 1.0;
 
-/// Most optical depth one step takes whole; a thicker step is split. Within a step the source is
-/// sampled once, and a sun's light falls off by e^{−τ} across it: at 0.25 the in-scatter of a
-/// uniform slab lit from behind the camera is within 0.5 % of exact (1 − τ²/12 relative), where a
-/// whole step of depth 2 would be 30 % off.
+/// Most optical depth a sun's light is held over: across a thicker step it falls by e^{−τ_sun}
+/// as the camera's does, and the step's share of it is summed over sub-steps of depth
+/// ≤ ~MAX_STEP_DEPTH ([`SunRadiance`]). At 0.25 the in-scatter of a uniform slab lit from behind
+/// the camera is within 0.5 % of exact (1 − τ²/12 relative), where a whole step of depth 2 would
+/// be 30 % off.
 pub const MAX_STEP_DEPTH: f32 = 0.25;
 /// Most sub-steps of one step: at 64 a step of optical depth 16 is still split to 0.25, and
 /// anything thicker is opaque within one step anyway.
-const MAX_SUBSTEPS: f32 = 64.0;
+const MAX_SUBSTEPS: usize = 64;
+/// Tr·e^{−τ_sun} at a thick step's midpoint below which the step is not split: what splitting
+/// moves is a part of the step's sun light, and below this that light is under 0.3 % of a
+/// sunlit step's in front of the camera. Measured on the one-sun fixtures of
+/// [docs/accuracy.md](../../docs/accuracy.md#suns) (torus and cloud, 0.5 and 1 optical depth per
+/// voxel, 64 samples per pixel): relative RMSE within 0.03 points of splitting every thick step
+/// (the torus at 1: 2.56 against 2.53 %), where a threshold of 0.03 gave 2.82 %; the bench
+/// cloud's sun march (1920×1080) takes 1.23–1.25 s against 1.67–1.77 s.
+const SPLIT_ABOVE: f32 = 0.003;
+
+/// One step of the march as a source sees it: where it is and the medium in front of it and in
+/// it. Density is held over the step (its midpoint's), so a source constant over it adds
+/// `weight()`·Ls.
+#[derive(Debug, Clone, Copy)]
+pub struct Step {
+    /// Its midpoint, in density index space.
+    pub p: Vec3,
+    /// The density at `p`.
+    pub rho: f32,
+    /// albedo·Tr, Tr the transmittance in front of the step.
+    pub scatter: f32,
+    /// Its optical depth τ = σt·ρ·Δ.
+    pub tau: f32,
+    /// e^{−τ}.
+    pub tr: f32,
+}
+
+impl Step {
+    /// albedo·Tr·(1 − e^{−τ}): what a source constant over the step is weighted by.
+    #[inline]
+    pub fn weight(&self) -> f32 {
+        self.scatter * (1.0 - self.tr)
+    }
+}
 
 /// The in-scattered radiance Ls of the medium, summed along a ray: the march needs only
-/// Σ_k c_k·Ls(p_k) over its steps, never Ls at one point, and an interpolated source can sum its
-/// interpolation weights per cell and read its node data once per cell instead of once per step.
+/// Σ_k ∫_step Tr·σs·Ls over its steps, never Ls at one point, and an interpolated source can sum
+/// its interpolation weights per cell and read its node data once per cell instead of once per
+/// step.
 pub trait InScatter: Sync {
     /// Per-ray running sum.
     type Sum;
-    /// A fresh sum for one ray.
-    fn start(&self) -> Self::Sum;
-    /// Adds c·Ls(p) at density index point `p`, where the density is `rho`.
-    fn add(&self, p: Vec3, rho: f32, c: f32, sum: &mut Self::Sum);
+    /// A fresh sum for one ray whose steps each run `span` (index space, start to end).
+    fn start(&self, span: Vec3) -> Self::Sum;
+    /// Adds one step's in-scattered light.
+    fn add(&self, step: &Step, sum: &mut Self::Sum);
     /// The sum so far: ([direct RGB], [indirect RGB]).
     fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2];
-    /// Whether Ls can change within one step of a thick medium, so a thick step must be split
-    /// ([`MAX_STEP_DEPTH`]). Ls interpolated between transfer voxels K steps apart cannot; a
-    /// sun's light, falling by e^{−τ} across the step, can.
-    fn varies_within_a_step(&self) -> bool {
-        false
-    }
 }
 
 /// Two sources lit together (the environment's transfer and the suns): their sums side by side.
 impl<A: InScatter, B: InScatter> InScatter for (A, B) {
     type Sum = (A::Sum, B::Sum);
 
-    fn start(&self) -> Self::Sum {
-        (self.0.start(), self.1.start())
+    fn start(&self, span: Vec3) -> Self::Sum {
+        (self.0.start(span), self.1.start(span))
     }
 
     #[inline]
-    fn add(&self, p: Vec3, rho: f32, c: f32, sum: &mut Self::Sum) {
-        self.0.add(p, rho, c, &mut sum.0);
-        self.1.add(p, rho, c, &mut sum.1);
+    fn add(&self, step: &Step, sum: &mut Self::Sum) {
+        self.0.add(step, &mut sum.0);
+        self.1.add(step, &mut sum.1);
     }
 
     fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2] {
         let (a, b) = (self.0.total(sum.0), self.1.total(sum.1));
         std::array::from_fn(|part| std::array::from_fn(|ch| a[part][ch] + b[part][ch]))
     }
-
-    fn varies_within_a_step(&self) -> bool {
-        self.0.varies_within_a_step() || self.1.varies_within_a_step()
-    }
 }
 
 /// The suns' single scattering, exact at the density's resolution (thesis 7.1):
 /// Ls(p) = Σ_suns p·E·e^{−τ_sun(p)}, τ_sun read from each sun's [`ShadowVolume`]. It is the
-/// `direct` layer; the suns' multiple scattering comes through the transfer's nodes.
+/// `direct` layer; the suns' multiple scattering comes through the transfer's nodes. A step
+/// reads each sun's depth at its midpoint; a thick one ([`MAX_STEP_DEPTH`]) that the sun lights
+/// ([`SPLIT_ABOVE`]) is summed over sub-steps ([`Split`]).
 pub struct SunRadiance<'a> {
     field: &'a DensityField,
     /// Each sun's shadow and its p·E per channel.
@@ -122,10 +151,11 @@ impl<'a> SunRadiance<'a> {
     }
 }
 
-/// A ray's sum for [`SunRadiance`]: a density sampler, one shadow cursor per sun and the direct
-/// RGB so far.
+/// A ray's sum for [`SunRadiance`]: a density sampler, a step's span, one shadow cursor per
+/// sun and the direct RGB so far.
 pub struct SunSum<'a> {
     sampler: BrickSampler<'a>,
+    span: Vec3,
     cursors: Vec<ShadowCursor>,
     direct: [f32; 3],
 }
@@ -136,18 +166,31 @@ impl<'a> InScatter for SunRadiance<'a> {
     // Inlined, as the other sums' are: out of line, a ray's SunSum (its sampler's cache) is
     // built and then copied out, which cost 1.5 % of a render's instructions.
     #[inline]
-    fn start(&self) -> SunSum<'a> {
+    fn start(&self, span: Vec3) -> SunSum<'a> {
         SunSum {
             sampler: self.field.sampler(),
+            span,
             cursors: vec![ShadowCursor::default(); self.suns.len()],
             direct: [0.0; 3],
         }
     }
 
     #[inline]
-    fn add(&self, p: Vec3, rho: f32, c: f32, sum: &mut SunSum<'a>) {
+    fn add(&self, step: &Step, sum: &mut SunSum<'a>) {
         for ((volume, e), cursor) in self.suns.iter().zip(&mut sum.cursors) {
-            let w = c * (-volume.optical_depth(p, rho, &mut sum.sampler, cursor)).exp();
+            let depth = volume.optical_depth(step.p, &mut sum.sampler, cursor);
+            let light = (-depth).exp();
+            let w = if step.tau > MAX_STEP_DEPTH && step.scatter * light >= SPLIT_ABOVE {
+                let split = Split {
+                    step,
+                    span: sum.span,
+                    volume,
+                    middle: depth,
+                };
+                split.light(&mut sum.sampler, cursor)
+            } else {
+                step.weight() * light
+            };
             for (d, e) in sum.direct.iter_mut().zip(e) {
                 *d += w * e;
             }
@@ -158,9 +201,54 @@ impl<'a> InScatter for SunRadiance<'a> {
     fn total(&self, sum: SunSum<'a>) -> [[f32; 3]; 2] {
         [sum.direct, [0.0; 3]]
     }
+}
 
-    fn varies_within_a_step(&self) -> bool {
-        !self.suns.is_empty()
+/// A thick, sunlit step split for one sun ([`MAX_STEP_DEPTH`]). The march holds the midpoint's
+/// density over the whole step, so its transmittance, and every other source's light, are those
+/// of a render without suns; within the step, the sub-steps' own densities only share out its
+/// optical depth τ, and each sub-step's sun light is read at its own midpoint.
+struct Split<'s> {
+    step: &'s Step,
+    /// The whole step, start to end (index space).
+    span: Vec3,
+    volume: &'s ShadowVolume,
+    /// The sun's depth at the step's midpoint, already read.
+    middle: f32,
+}
+
+impl Split<'_> {
+    /// albedo·Tr·Σ_j e^{−τ_<j}·(1 − e^{−τ_j})·e^{−τ_sun(p_j)}, with τ_j = τ·ρ_j/Σρ: the step's
+    /// sun light, which at a constant e^{−τ_sun} is `weight()`·e^{−τ_sun} exactly.
+    #[cold]
+    #[inline(never)]
+    fn light(&self, sampler: &mut BrickSampler, cursor: &mut ShadowCursor) -> f32 {
+        let step = self.step;
+        let n = ((step.tau / MAX_STEP_DEPTH).ceil() as usize).min(MAX_SUBSTEPS);
+        let at = |j: usize| step.p + self.span * ((j as f32 + 0.5) / n as f32 - 0.5);
+        let mut rho = [0f32; MAX_SUBSTEPS];
+        for (j, r) in rho[..n].iter_mut().enumerate() {
+            *r = sampler.sample(at(j));
+        }
+        let total: f32 = rho[..n].iter().sum();
+        if total <= 0.0 {
+            return step.weight() * (-self.middle).exp();
+        }
+        let per_density = step.tau / total;
+        let (mut tr, mut sum) = (1.0f32, 0.0f32);
+        for (j, &r) in rho[..n].iter().enumerate() {
+            if r <= 0.0 {
+                continue;
+            }
+            // With n odd the middle sub-step's midpoint is the step's.
+            let depth = match 2 * j + 1 == n {
+                true => self.middle,
+                false => self.volume.optical_depth(at(j), sampler, cursor),
+            };
+            let sub_tr = (-r * per_density).exp();
+            sum += tr * (1.0 - sub_tr) * (-depth).exp();
+            tr *= sub_tr;
+        }
+        step.scatter * sum
     }
 }
 
@@ -250,7 +338,7 @@ pub struct CellSum<'a> {
 impl<'a> InScatter for TransferRadiance<'a> {
     type Sum = CellSum<'a>;
 
-    fn start(&self) -> CellSum<'a> {
+    fn start(&self, _span: Vec3) -> CellSum<'a> {
         CellSum {
             base: None,
             slots: None,
@@ -262,7 +350,8 @@ impl<'a> InScatter for TransferRadiance<'a> {
     }
 
     #[inline]
-    fn add(&self, p: Vec3, rho: f32, c: f32, sum: &mut CellSum<'a>) {
+    fn add(&self, step: &Step, sum: &mut CellSum<'a>) {
+        let (p, c) = (step.p, step.weight());
         let q = p * self.inv_k;
         let (b, f) = floor_split(q);
         if sum.base != Some(b) {
@@ -289,7 +378,7 @@ impl<'a> InScatter for TransferRadiance<'a> {
                 .map(|(w, s)| w * shaping.fitted.get(s as usize).copied().unwrap_or(0.0))
                 .sum();
             if fitted > MIN_FITTED_VISIBILITY {
-                if let Some(fine) = sampler.at(p, rho) {
+                if let Some(fine) = sampler.at(p, step.rho) {
                     cd *= (fine / fitted).clamp(0.0, MAX_VISIBILITY_RATIO);
                 }
             }
@@ -423,34 +512,13 @@ pub fn march_ray<S: InScatter>(
         tr: 1.0,
         depth_sum: 0.0,
         weight_sum: 0.0,
-        in_scatter: scene.source.start(),
+        in_scatter: scene.source.start(d32 * step_f32),
     };
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
-    let substeps = scene.source.varies_within_a_step();
     let mut sampler = scene.field.sampler();
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
-        // One segment of constant density: optical depth `tau`, source sampled at `p`, at world
-        // distance `t` from the camera.
-        let mut segment = |p: Vec3, rho: f32, length: f32, t: f64| {
-            let tau = sigma_t * rho * length;
-            // One exp: glibc's expf costs about a third of expm1f (measured: 10 % of the
-            // render's CPU time). The opacity 1 − e^{−τ} loses relative precision only for
-            // τ ≲ 1e-4, where the step adds almost nothing, and Tr still telescopes.
-            let step_tr = (-tau).exp();
-            let opacity = 1.0 - step_tr;
-            if albedo > 0.0 {
-                scene
-                    .source
-                    .add(p, rho, state.tr * albedo * opacity, &mut state.in_scatter);
-            }
-            let w = (state.tr * opacity) as f64;
-            state.depth_sum += t * w;
-            state.weight_sum += w;
-            state.tr *= step_tr;
-            state.tr
-        };
         let k_hi = k_at(t_b).min(k_end);
         let k_lo = k_at(t_a).max(next_k);
         // k as f64, counted in f64 (exact below 2^53): a u64 → f64 conversion per step costs
@@ -463,29 +531,28 @@ pub fn march_ray<S: InScatter>(
             let s = ((kf + jitter) * step) as f32;
             kf += 1.0;
             let p = entry + d32 * s;
-            let t = t_entry + s as f64;
             let rho = sampler.sample(p);
             if rho > 0.0 {
                 let tau = sigma_t * rho * step_f32;
-                let mut tr = 1.0;
-                if tau <= MAX_STEP_DEPTH || !substeps {
-                    tr = segment(p, rho, step_f32, t);
-                } else {
-                    // A thick step: its light varies within it (a sun's shadow falls off by
-                    // e^{−τ} across it), so it is split into sub-steps of depth ≤ ~MAX_STEP_DEPTH,
-                    // each with its own density and source sample, centred on the step.
-                    let n = (tau / MAX_STEP_DEPTH).ceil().min(MAX_SUBSTEPS);
-                    let sub = step_f32 / n;
-                    for j in 0..n as u32 {
-                        let o = sub * (j as f32 + 0.5) - 0.5 * step_f32;
-                        let pj = p + d32 * o;
-                        let rho = sampler.sample(pj);
-                        if rho > 0.0 {
-                            tr = segment(pj, rho, sub, t + o as f64);
-                        }
-                    }
+                // One exp: glibc's expf costs about a third of expm1f (measured: 10 % of the
+                // render's CPU time). The opacity 1 − e^{−τ} loses relative precision only for
+                // τ ≲ 1e-4, where the step adds almost nothing, and Tr still telescopes.
+                let step_tr = (-tau).exp();
+                if albedo > 0.0 {
+                    let step = Step {
+                        p,
+                        rho,
+                        scatter: state.tr * albedo,
+                        tau,
+                        tr: step_tr,
+                    };
+                    scene.source.add(&step, &mut state.in_scatter);
                 }
-                if tr < TERMINATION_TRANSMITTANCE {
+                let w = (state.tr * (1.0 - step_tr)) as f64;
+                state.depth_sum += (t_entry + s as f64) * w;
+                state.weight_sum += w;
+                state.tr *= step_tr;
+                if state.tr < TERMINATION_TRANSMITTANCE {
                     terminated_at = Some(k + 1);
                     return ControlFlow::Break(());
                 }

@@ -244,13 +244,12 @@ impl ShadowVolume {
         Some(brick[local_index(voxel - (voxel >> LEAF_LOG2 as i32) * BLOCK)])
     }
 
-    /// Optical depth toward the light at index point `p`, where the density is `rho` (module
-    /// doc, "Lookups"); `sampler` reads the density, `cursor` remembers a ray's last brick.
+    /// Optical depth toward the light at index point `p` (module doc, "Lookups"); `sampler`
+    /// reads the density, `cursor` remembers a ray's last brick.
     #[inline]
     pub fn optical_depth(
         &self,
         p: Vec3,
-        rho: f32,
         sampler: &mut BrickSampler,
         cursor: &mut ShadowCursor,
     ) -> f32 {
@@ -268,8 +267,9 @@ impl ShadowVolume {
         // midpoint rule — one density sample per slice. Where a ray enters the medium the density
         // along it has a kink; the trapezoid rule's chord over it darkened lit surfaces by 2 %,
         // and Simpson's rule was no more accurate in the picture for twice the samples. `inside`
-        // is the density last seen, which decides whether to walk on.
-        let mut inside = rho;
+        // is the density last seen, which decides whether to walk on; from a point on a slice
+        // none is seen yet, and the walk goes on to the next slice.
+        let mut inside = f32::INFINITY;
         let mut tau = 0.0;
         if delta > 0.0 {
             inside = sampler.sample(0.5 * (p + q));
@@ -305,14 +305,41 @@ impl ShadowVolume {
     #[inline]
     fn on_slice(&self, q: Vec3, cursor: &mut ShadowCursor) -> Option<f32> {
         let (cell, f) = floor_split(q);
-        let brick = self.brick(cell, cursor)?;
-        let i = local_index(cell - (cell >> LEAF_LOG2 as i32) * BLOCK);
+        let (brick, i) = self.slice_cell(cell, cursor)?;
         let (b, c) = ((self.axis + 1) % 3, (self.axis + 2) % 3);
         let (sb, sc) = (STRIDES[b], STRIDES[c]);
         let (gb, gc) = (1.0 - f[b], 1.0 - f[c]);
         let at = |o: usize| brick[i + o].sqrt();
         let root = (at(0) * gc + at(sc) * f[c]) * gb + (at(sb) * gc + at(sb + sc) * f[c]) * f[b];
         Some(root * root)
+    }
+
+    /// The brick and local index of slice voxel `cell`, whose cell across the light (`cell` +
+    /// {0,1} on the other two axes) that brick also holds: its own block's brick, or, on a
+    /// block's first slice, the brick before it along the axis, which holds that slice as its
+    /// apron. The second is what a lookup landing just outside the occupied region finds where
+    /// the region's face toward the light lies on a block boundary: that slice's depths are the
+    /// light's entry into the medium, and without them the lookup fell back to a straight line
+    /// between two voxels' depths through the face's ramp.
+    #[inline]
+    fn slice_cell(
+        &self,
+        cell: IVec3,
+        cursor: &mut ShadowCursor,
+    ) -> Option<(&[f32; BRICK_VOXELS], usize)> {
+        let local = cell - (cell >> LEAF_LOG2 as i32) * BLOCK;
+        if let Some(brick) = self.brick(cell, cursor) {
+            return Some((brick, local_index(local)));
+        }
+        if local[self.axis] != 0 {
+            return None;
+        }
+        let mut before = cell;
+        before[self.axis] -= 1;
+        let mut apron = local;
+        apron[self.axis] = BLOCK;
+        self.brick(before, cursor)
+            .map(|brick| (brick, local_index(apron)))
     }
 
     /// The depth at `p` trilinear between its cell's eight voxels: where the slice lookup has no

@@ -34,19 +34,14 @@ fn a_uniform_tile_along_an_axis_has_the_exact_chord_depth() {
     for x in [0, 5, 64, 120, 127] {
         let p = Vec3::new(x as f32, 40.0, 77.0);
         let want = sigma_t * ((127 - x) as f32 + 0.5);
-        let got = vol.optical_depth(p, sampler.sample(p), &mut sampler, &mut r);
+        let got = vol.optical_depth(p, &mut sampler, &mut r);
         assert!(
             (got - want).abs() < 1e-4 * want.max(1.0),
             "x {x}: {got} vs {want}"
         );
     }
     // Between voxels the depth is trilinear: halfway is the mean.
-    let mid = vol.optical_depth(
-        Vec3::new(10.5, 3.25, 9.0),
-        sampler.sample(Vec3::new(10.5, 3.25, 9.0)),
-        &mut sampler,
-        &mut r,
-    );
+    let mid = vol.optical_depth(Vec3::new(10.5, 3.25, 9.0), &mut sampler, &mut r);
     assert!((mid - sigma_t * 117.0).abs() < 1e-4, "{mid}");
 }
 
@@ -69,7 +64,7 @@ fn oblique_light_matches_a_fine_ray_march() {
             Vec3::new(100.0, 10.0, 126.5),
         ] {
             let want = marched(&field, sigma_t, p, dir);
-            let got = vol.optical_depth(p, sampler.sample(p), &mut sampler, &mut r);
+            let got = vol.optical_depth(p, &mut sampler, &mut r);
             // Bilinear resampling per slice is exact for a uniform field; what remains is the
             // faces' ramps, crossed obliquely.
             assert!(
@@ -92,12 +87,7 @@ fn a_gap_still_carries_the_shadow_of_what_lies_beyond_it() {
     let mut r = ShadowCursor::default();
     let mut sampler = field.sampler();
     // From the lower tile's top voxel: ½ voxel of its own ramp, then the whole upper tile (8).
-    let got = vol.optical_depth(
-        Vec3::new(4.0, 7.0, 4.0),
-        sampler.sample(Vec3::new(4.0, 7.0, 4.0)),
-        &mut sampler,
-        &mut r,
-    );
+    let got = vol.optical_depth(Vec3::new(4.0, 7.0, 4.0), &mut sampler, &mut r);
     let want = sigma_t * (0.5 + 8.0);
     assert!((got - want).abs() < 0.02 * want, "{got} vs {want}");
 }
@@ -154,7 +144,7 @@ fn smooth_density_agrees_with_ray_marching_where_the_density_is() {
             continue;
         }
         // Compare transmittances: what the render multiplies by.
-        let err = ((-vol.optical_depth(p, sampler.sample(p), &mut sampler, &mut r)).exp()
+        let err = ((-vol.optical_depth(p, &mut sampler, &mut r)).exp()
             - (-marched(&field, sigma_t, p, dir)).exp())
         .abs();
         worst = worst.max(err);
@@ -178,4 +168,37 @@ fn the_estimate_bounds_the_built_bytes() {
         estimate >= built && estimate < 2 * built,
         "{estimate} vs {built}"
     );
+}
+
+#[test]
+fn a_face_on_a_block_boundary_has_the_depth_of_its_ramp() {
+    // A slab of 8³ tiles, voxels z ∈ [0, 23]: its top face lies on a block boundary, and the
+    // trilinear density falls linearly to 0 over the voxel above it, so from a point at height
+    // h ∈ [0, 1] under z = 24 the depth toward a sun overhead is σt·h²/2 (and under the plateau's
+    // top, σt·(h − ½)). The same from below, through the ramp under z = 0.
+    let mut g = SparseGrid::new(Transform::default(), 0.0);
+    for x in (0..24).step_by(8) {
+        for y in (0..24).step_by(8) {
+            for z in (0..24).step_by(8) {
+                g.insert_tile(TileLevel::Block, IVec3::new(x, y, z), 1.0);
+            }
+        }
+    }
+    let field = DensityField::new(g);
+    let sigma_t = 1.0;
+    let depth = |h: f32| sigma_t * if h <= 1.0 { h * h / 2.0 } else { h - 0.5 };
+    for (light, face) in [(Vec3::Z, 24.0f32), (-Vec3::Z, -1.0)] {
+        let vol = ShadowVolume::build(&field, sigma_t, light);
+        let mut r = ShadowCursor::default();
+        let mut sampler = field.sampler();
+        for h in [0.25f32, 0.5, 0.75, 1.0, 1.5] {
+            let p = Vec3::new(9.5, 13.0, face - light.z * h);
+            let got = vol.optical_depth(p, &mut sampler, &mut r);
+            assert!(
+                (got - depth(h)).abs() < 1e-4,
+                "light {light}, h {h}: {got} vs {}",
+                depth(h)
+            );
+        }
+    }
 }
