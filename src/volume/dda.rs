@@ -1,8 +1,9 @@
 //! Empty-space skipping: a hierarchical DDA over the sparse tree, in the spirit of OpenVDB's
-//! `VolumeHDDA` / `VolumeRayIntersector`. Given an index-space ray it yields the maximal t-intervals
+//! `VolumeHDDA` / `VolumeRayIntersector`. Given an index-space ray it yields the t-intervals
 //! ("spans") where the ray crosses 8³ blocks whose trilinear density can be non-zero, stepping over
 //! whole empty 128³ nodes at the coarse level and empty blocks at the fine level, with the largest
-//! density each span can see (a majorant).
+//! density each span can see (a majorant). A span runs over consecutive occupied cells up to
+//! [`SPAN_BLOCKS`] blocks (dense nodes do not count); the next one starts where it ends.
 //!
 //! **Dilation.** A trilinear sample at p reads the voxels floor(p) + {0,1}³, so it can be positive
 //! only when p lies within one voxel of a voxel holding density: inside the box (lo − 1, hi + 1)
@@ -41,7 +42,7 @@ const BLOCKS_PER_NODE_LOG2: i32 = NODE_LOG2 - LEAF_LOG2 as i32;
 /// log2 of a root tile's edge in nodes.
 const NODES_PER_ROOT_LOG2: i32 = TileLevel::Root as i32 - NODE_LOG2;
 
-/// A maximal interval of ray parameters through occupied cells.
+/// An interval of ray parameters through occupied cells.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Span {
     pub t0: f64,
@@ -49,6 +50,14 @@ pub struct Span {
     /// An upper bound of the trilinear density anywhere in the span.
     pub max_density: f32,
 }
+
+/// Most blocks one span merges before it is handed on: a march that stops early in a thick
+/// medium (its transmittance spent within a few voxels) then does not wait for the walk through
+/// the rest of it. Measured on the bench cloud's 1920×1080 render without a sun (7 alternating
+/// runs): medians 0.84 s wall and 1.24 s CPU with spans merged whole, 0.76 s and 1.17 s at 1 cell,
+/// 0.78 s and 1.13 s at 4; the walk visited 21 M blocks for 19 M density samples, 12 M of them
+/// occupied blocks merged into spans most of which the march never reached.
+const SPAN_BLOCKS: u32 = 4;
 
 /// Voxels of slack around the trilinear support of positive voxels (see the module doc).
 const DILATION: i32 = 2;
@@ -337,11 +346,11 @@ impl Occupancy {
         let Some((t0, t1)) = ray.clip(t0, t1, lo, hi) else {
             return;
         };
-        let mut pending: Option<Span> = None;
+        let mut pending: Option<Open> = None;
         let whole = (IVec3::MIN, IVec3::MAX);
         let flow = walk(ray, t0, t1, NODE_LOG2, whole, |node, ta, tb| {
             match self.node(node) {
-                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, &mut f)?,
+                Some(NodeCell::Dense(m)) => extend(&mut pending, ta, tb, m, split, 0, &mut f)?,
                 Some(NodeCell::Partial(m)) => {
                     let blocks = &self.partial[m as usize];
                     let blo = node << BLOCKS_PER_NODE_LOG2;
@@ -362,7 +371,7 @@ impl Occupancy {
                                 if a > tc {
                                     close(&mut pending, &mut f)?;
                                 }
-                                extend(&mut pending, a, b, m, split, &mut f)?;
+                                extend(&mut pending, a, b, m, split, 1, &mut f)?;
                                 if b < td {
                                     close(&mut pending, &mut f)?;
                                 }
@@ -377,8 +386,8 @@ impl Occupancy {
             ControlFlow::Continue(())
         });
         if flow.is_continue() {
-            if let Some(s) = pending {
-                let _ = f(s);
+            if let Some(open) = pending {
+                let _ = f(open.span);
             }
         }
     }
@@ -541,41 +550,57 @@ fn occupied_bounds(
     (lo.x <= hi.x).then_some((lo, hi))
 }
 
-/// Hands the open span, if any, to `f`: the ray has met empty space.
+/// The span being grown, and how many blocks it has taken.
+struct Open {
+    span: Span,
+    blocks: u32,
+}
+
+/// Hands the open span, if any, to `f`.
 fn close(
-    pending: &mut Option<Span>,
+    pending: &mut Option<Open>,
     f: &mut impl FnMut(Span) -> ControlFlow<()>,
 ) -> ControlFlow<()> {
     match pending.take() {
-        Some(s) => f(s),
+        Some(open) => f(open.span),
         None => ControlFlow::Continue(()),
     }
 }
 
 /// Grows the open span by the occupied cell [ta, tb]: consecutive occupied cells are contiguous,
 /// so they merge (with `split`, only while the bound stays the same; otherwise the open span goes
-/// to `f`); an empty cell (handled by the caller) ends a span.
+/// to `f`); an empty cell (handled by the caller) ends a span, and so does its
+/// [`SPAN_BLOCKS`]th block (`blocks`: 1 for a block, 0 for a dense node, one step of the walk).
 fn extend(
-    pending: &mut Option<Span>,
+    pending: &mut Option<Open>,
     ta: f64,
     tb: f64,
     m: f32,
     split: bool,
+    blocks: u32,
     f: &mut impl FnMut(Span) -> ControlFlow<()>,
 ) -> ControlFlow<()> {
-    if let Some(s) = pending {
-        if !split || s.max_density == m {
-            s.t1 = tb;
-            s.max_density = s.max_density.max(m);
-            return ControlFlow::Continue(());
+    match pending {
+        Some(open) if !split || open.span.max_density == m => {
+            open.span.t1 = tb;
+            open.span.max_density = open.span.max_density.max(m);
+            open.blocks += blocks;
         }
-        f(*s)?;
+        _ => {
+            close(pending, f)?;
+            *pending = Some(Open {
+                span: Span {
+                    t0: ta,
+                    t1: tb,
+                    max_density: m,
+                },
+                blocks,
+            });
+        }
     }
-    *pending = Some(Span {
-        t0: ta,
-        t1: tb,
-        max_density: m,
-    });
+    if pending.as_ref().is_some_and(|o| o.blocks >= SPAN_BLOCKS) {
+        return close(pending, f);
+    }
     ControlFlow::Continue(())
 }
 

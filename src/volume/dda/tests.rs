@@ -252,3 +252,21 @@ fn dense_and_hashed_marks_agree() {
     }
     assert!(mark_boxes(&[]).is_empty());
 }
+
+#[test]
+fn a_long_run_of_occupied_blocks_comes_in_spans_of_a_few_blocks_end_to_end() {
+    // Twelve block tiles in a row along x, voxels [0, 95]: with the slack, one stretch [−2, 97]
+    // over 14 blocks, handed on SPAN_BLOCKS blocks at a time, each span starting where the last
+    // ended.
+    let mut g = grid();
+    for i in 0..12 {
+        g.insert_tile(TileLevel::Block, IVec3::new(8 * i, 0, 0), 1.0);
+    }
+    let s = Occupancy::build(&g).spans(dv(-20.0, 3.5, 3.5), DVec3::X, 0.0, 200.0);
+    assert_eq!(s.len(), 14usize.div_ceil(SPAN_BLOCKS as usize), "{s:?}");
+    assert_eq!((s[0].t0, s[s.len() - 1].t1), (18.0, 117.0));
+    for w in s.windows(2) {
+        assert_eq!(w[0].t1, w[1].t0);
+    }
+    assert!(s.iter().all(|s| s.t1 - s.t0 <= 8.0 * SPAN_BLOCKS as f64));
+}
