@@ -571,6 +571,21 @@ pub(crate) fn trilinear(c: [f32; 8], f: Vec3) -> f32 {
     lerp(lerp(x00, x10, f.y), lerp(x01, x11, f.y), f.z)
 }
 
+/// A box of 8³ block tiles of density 1 over voxels [0, `size`) (multiples of 8), unit voxels: a
+/// uniform slab or cube whose faces lie on block boundaries.
+#[cfg(test)]
+pub fn block_box(size: IVec3) -> SparseGrid {
+    let mut g = SparseGrid::new(Transform::default(), 0.0);
+    for x in (0..size.x).step_by(LEAF_DIM as usize) {
+        for y in (0..size.y).step_by(LEAF_DIM as usize) {
+            for z in (0..size.z).step_by(LEAF_DIM as usize) {
+                g.insert_tile(TileLevel::Block, IVec3::new(x, y, z), 1.0);
+            }
+        }
+    }
+    g
+}
+
 /// Adds `count` leaves of hashed density (0 to 3) at hashed block positions in [0, 112)³, skipping
 /// repeats: a sparse, cloud-like test grid with gaps between leaves.
 #[cfg(test)]

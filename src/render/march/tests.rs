@@ -5,7 +5,7 @@ use crate::math::ray::Ray;
 use crate::render::film::Frame;
 use crate::render::relight::Radiance;
 use crate::transfer::shape::TransferShape;
-use crate::volume::grid::{add_hashed_leaves, TileLevel, LEAF_VOXELS};
+use crate::volume::grid::{add_hashed_leaves, block_box, TileLevel, LEAF_VOXELS};
 use crate::volume::visibility::Resolution;
 use crate::volume::{SparseGrid, Transform};
 use glam::IVec3;
@@ -555,19 +555,6 @@ fn render_whole<S: InScatter>(
     (frame, stats)
 }
 
-/// A slab of 8³ tiles of density 1: `w` × `w` × `depth` voxels from the origin.
-fn slab(w: i32, depth: i32) -> SparseGrid {
-    let mut g = SparseGrid::new(Transform::default(), 0.0);
-    for x in (0..w).step_by(8) {
-        for y in (0..w).step_by(8) {
-            for z in (0..depth).step_by(8) {
-                g.insert_tile(TileLevel::Block, IVec3::new(x, y, z), 1.0);
-            }
-        }
-    }
-    g
-}
-
 #[test]
 fn a_thick_sunlit_step_is_split_so_its_light_falls_within_it() {
     // The camera inside a uniform slab, half a voxel under its plateau's top, looking down, the
@@ -577,7 +564,7 @@ fn a_thick_sunlit_step_is_split_so_its_light_falls_within_it() {
     // the sun's light falls by e^{−2} across each one: held at the midpoint it comes out 35 %
     // too dark; split into sub-steps it is within 2 % (1 % with every thick step split; past
     // the first step, which has 98 % of the light, `SPLIT_ABOVE` leaves them whole).
-    let field = DensityField::new(slab(32, 24));
+    let field = DensityField::new(block_box(IVec3::new(32, 32, 24)));
     let (sigma_t, albedo, e) = (2.0f32, 0.8f32, [1.0f32, 2.0, 4.0]);
     let shadow = ShadowVolume::build(&field, sigma_t, Vec3::Z);
     let source = SunRadiance::new(&field, [(&shadow, e)]);

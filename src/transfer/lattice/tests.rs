@@ -3,6 +3,8 @@
 use super::*;
 use glam::Vec3;
 
+use crate::volume::grid::block_box;
+
 fn unit(d: IVec3) -> Vec3 {
     d.as_vec3().normalize()
 }
@@ -107,17 +109,8 @@ fn opposite_directions_pair_up() {
 /// A slab 64 voxels thick (y in 0..64, density 1) and 192 wide, lit straight from above: the
 /// lattice's fluence per unit irradiance down the slab's middle column, at K = 6.
 fn slab_fluence(sigma_t: f32) -> Vec<(i32, f32)> {
-    use crate::volume::grid::{SparseGrid, TileLevel, Transform};
     let (thick, wide, k) = (64, 192, 6);
-    let mut g = SparseGrid::new(Transform::default(), 0.0);
-    for x in (0..wide).step_by(8) {
-        for y in (0..thick).step_by(8) {
-            for z in (0..wide).step_by(8) {
-                g.insert_tile(TileLevel::Block, IVec3::new(x, y, z), 1.0);
-            }
-        }
-    }
-    let field = DensityField::new(g);
+    let field = DensityField::new(block_box(IVec3::new(wide, thick, wide)));
     let layout = TransferLayout::build(&field.grid, k);
     let medium = Medium {
         sigma_t,
@@ -233,16 +226,7 @@ fn the_tail_gives_what_the_generations_not_swept_would() {
     // the DC term, which stop with its generations and its ratio, carry light too): F_ms stopped
     // at CONVERGENCE with the tail added against a run to 1e-9: 4e-6 of the DC fluence's norm.
     // Dropping the tail leaves it 3.6e-3 off at this tolerance, far outside the bound.
-    use crate::volume::grid::{SparseGrid, TileLevel, Transform};
-    let mut g = SparseGrid::new(Transform::default(), 0.0);
-    for x in (0..48).step_by(8) {
-        for y in (0..48).step_by(8) {
-            for z in (0..48).step_by(8) {
-                g.insert_tile(TileLevel::Block, IVec3::new(x, y, z), 1.0);
-            }
-        }
-    }
-    let field = DensityField::new(g);
+    let field = DensityField::new(block_box(IVec3::splat(48)));
     let layout = TransferLayout::build(&field.grid, 6);
     let medium = Medium {
         sigma_t: 0.2,

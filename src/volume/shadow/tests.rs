@@ -1,5 +1,5 @@
 use super::*;
-use crate::volume::grid::{add_hashed_leaves, Transform};
+use crate::volume::grid::{add_hashed_leaves, block_box, Transform};
 
 fn tile_grid(value: f32) -> SparseGrid {
     let mut g = SparseGrid::new(Transform::default(), 0.0);
@@ -176,15 +176,7 @@ fn a_face_on_a_block_boundary_has_the_depth_of_its_ramp() {
     // trilinear density falls linearly to 0 over the voxel above it, so from a point at height
     // h ∈ [0, 1] under z = 24 the depth toward a sun overhead is σt·h²/2 (and under the plateau's
     // top, σt·(h − ½)). The same from below, through the ramp under z = 0.
-    let mut g = SparseGrid::new(Transform::default(), 0.0);
-    for x in (0..24).step_by(8) {
-        for y in (0..24).step_by(8) {
-            for z in (0..24).step_by(8) {
-                g.insert_tile(TileLevel::Block, IVec3::new(x, y, z), 1.0);
-            }
-        }
-    }
-    let field = DensityField::new(g);
+    let field = DensityField::new(block_box(IVec3::splat(24)));
     let sigma_t = 1.0;
     let depth = |h: f32| sigma_t * if h <= 1.0 { h * h / 2.0 } else { h - 0.5 };
     for (light, face) in [(Vec3::Z, 24.0f32), (-Vec3::Z, -1.0)] {
