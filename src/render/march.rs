@@ -52,7 +52,7 @@ pub const DEFAULT_STEP_VOXELS: f32 = 1.0;
 /// ≤ ~MAX_STEP_DEPTH ([`SunRadiance`]). At 0.25 the in-scatter of a uniform slab lit from behind
 /// the camera is within 0.5 % of exact (1 − τ²/12 relative), where a whole step of depth 2 would
 /// be 30 % off.
-pub const MAX_STEP_DEPTH: f32 = 0.25;
+const MAX_STEP_DEPTH: f32 = 0.25;
 /// Most sub-steps of one step: at 64 a step of optical depth 16 is still split to 0.25, and
 /// anything thicker is opaque within one step anyway.
 const MAX_SUBSTEPS: usize = 64;
@@ -219,7 +219,7 @@ struct Split<'s> {
 impl Split<'_> {
     /// albedo·Tr·Σ_j e^{−τ_<j}·(1 − e^{−τ_j})·e^{−τ_sun(p_j)}, with τ_j = τ·ρ_j/Σρ: the step's
     /// sun light, which at a constant e^{−τ_sun} is `weight()`·e^{−τ_sun} exactly.
-    #[cold]
+    // Out of line: the step loop, which most steps take without it, keeps its registers.
     #[inline(never)]
     fn light(&self, sampler: &mut BrickSampler, cursor: &mut ShadowCursor) -> f32 {
         let step = self.step;

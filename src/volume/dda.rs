@@ -54,7 +54,7 @@ pub struct Span {
 /// Most blocks one span merges before it is handed on: a march that stops early in a thick
 /// medium (its transmittance spent within a few voxels) then does not wait for the walk through
 /// the rest of it. Measured on the bench cloud's 1920×1080 render without a sun (7 alternating
-/// runs): medians 0.84 s wall and 1.24 s CPU with spans merged whole, 0.76 s and 1.17 s at 1 cell,
+/// runs): medians 0.84 s wall and 1.24 s CPU with spans merged whole, 0.76 s and 1.17 s at 1 block,
 /// 0.78 s and 1.13 s at 4; the walk visited 21 M blocks for 19 M density samples, 12 M of them
 /// occupied blocks merged into spans most of which the march never reached.
 const SPAN_BLOCKS: u32 = 4;
