@@ -74,7 +74,9 @@ pub struct Step {
     pub p: Vec3,
     /// The density at `p`.
     pub rho: f32,
-    /// albedo·Tr, Tr the transmittance in front of the step.
+    /// Tr, the transmittance in front of the step.
+    pub front: f32,
+    /// albedo·Tr.
     pub scatter: f32,
     /// Its optical depth τ = σt·ρ·Δ.
     pub tau: f32,
@@ -178,7 +180,7 @@ impl<'a> InScatter for SunRadiance<'a> {
     #[inline]
     fn add(&self, step: &Step, sum: &mut SunSum<'a>) {
         for ((volume, e), cursor) in self.suns.iter().zip(&mut sum.cursors) {
-            let depth = volume.optical_depth(step.p, &mut sum.sampler, cursor);
+            let depth = volume.optical_depth(step.p, step.front, &mut sum.sampler, cursor);
             let light = (-depth).exp();
             let w = if step.tau > MAX_STEP_DEPTH && step.scatter * light >= SPLIT_ABOVE {
                 let split = Split {
@@ -242,7 +244,9 @@ impl Split<'_> {
             // With n odd the middle sub-step's midpoint is the step's.
             let depth = match 2 * j + 1 == n {
                 true => self.middle,
-                false => self.volume.optical_depth(at(j), sampler, cursor),
+                false => self
+                    .volume
+                    .optical_depth(at(j), step.front, sampler, cursor),
             };
             let sub_tr = (-r * per_density).exp();
             sum += tr * (1.0 - sub_tr) * (-depth).exp();
@@ -542,6 +546,7 @@ pub fn march_ray<S: InScatter>(
                     let step = Step {
                         p,
                         rho,
+                        front: state.tr,
                         scatter: state.tr * albedo,
                         tau,
                         tr: step_tr,

@@ -30,7 +30,10 @@
 //! light the depth inside a lit surface grows as the square of the distance through the
 //! density's one-voxel ramp, and a straight line between two voxels' depths put the sunlit side of
 //! a cloud 10 % too dark at one optical depth per voxel; across it, √τ follows that growth where
-//! τ itself would bend ([`ShadowVolume::on_slice`]).
+//! τ itself would bend ([`ShadowVolume::on_slice`]). Where the four depths around the landing
+//! point are far apart (a shadow's edge, a surface the light grazes) no interpolation holds, and
+//! the walk goes on, through empty space too, until they agree or the light that could reach the
+//! camera from there is spent ([`LANDING_SPREAD`], [`VISIBLE_DEPTH`]).
 
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
@@ -86,6 +89,25 @@ const WALK_SLICES: usize = 5;
 /// Five to 2 costs 10 % more of the march's instructions than four to 1 (callgrind, a 480×270
 /// render of the bench cloud under the built-in sky and its sun).
 const WALK_DEPTH: f32 = 2.0;
+
+/// Spread of the four depths around a landing point (max − min) past which a lookup walks on,
+/// until they are within [`AGREED_SPREAD`] of each other (module doc, "Lookups"). Measured on the
+/// torus fixture under one sun (64 samples per pixel, 256×144, against 8192-sample path-traced
+/// references whose own floor is 99.1–99.3 %), lit pixels within 10 % of the reference at σt 1
+/// (0.5): landing wherever the walk ends 95.5 % (97.8 %); walking on past a spread of 1 until it
+/// is 0.25: 98.1 % (99.1 %); past 0.5 until 0.1: 99.2 % (99.7 %); past 0.25 until 0.1: 99.3 %
+/// (99.8 %). With the sun's depth from a 0.05-voxel ray march at every lookup instead it is 99.4 %:
+/// what is left is the camera's one-voxel steps.
+const LANDING_SPREAD: f32 = 0.5;
+/// Spread at which a lookup that walks on lands ([`LANDING_SPREAD`]).
+const AGREED_SPREAD: f32 = 0.1;
+/// Depth, the camera's own in front of the point included, past which a lookup does not walk on:
+/// the sun's light that reaches the camera from there is under 0.25 % of a lit surface's. Without
+/// the camera's depth the bench cloud's sun march took 30 % longer than landing at once, with it
+/// 15 %, for the same figures on the torus.
+const VISIBLE_DEPTH: f32 = 6.0;
+/// Most slices a lookup walks on past a spread landing.
+const MAX_FURTHER_SLICES: u32 = 128;
 
 /// Offsets of one step along x, y and z in a brick.
 const STRIDES: [usize; 3] = [DIM * DIM, DIM, 1];
@@ -244,12 +266,14 @@ impl ShadowVolume {
         Some(brick[local_index(voxel - (voxel >> LEAF_LOG2 as i32) * BLOCK)])
     }
 
-    /// Optical depth toward the light at index point `p` (module doc, "Lookups"); `sampler`
+    /// Optical depth toward the light at index point `p` (module doc, "Lookups"), seen through
+    /// transmittance `shown` (the camera's in front of it; 1 when nothing dims it); `sampler`
     /// reads the density, `cursor` remembers a ray's last brick.
     #[inline]
     pub fn optical_depth(
         &self,
         p: Vec3,
+        shown: f32,
         sampler: &mut BrickSampler,
         cursor: &mut ShadowCursor,
     ) -> f32 {
@@ -285,12 +309,37 @@ impl ShadowVolume {
             steps += 1;
         }
         // The farthest landing point a brick holds (one a step past the occupied region may not).
-        for &(q, tau) in walk[..steps].iter().rev() {
-            if let Some(on_slice) = self.on_slice(q, cursor) {
-                return tau + on_slice;
+        let Some((q, mut tau, mut landing)) = walk[..steps]
+            .iter()
+            .rev()
+            .find_map(|&(q, tau)| Some((q, tau, self.on_slice(q, cursor)?)))
+        else {
+            return self.trilinear(p, cursor);
+        };
+        // Where the four depths around the landing point are far apart (a shadow's edge, a
+        // surface the light grazes) no interpolation between them holds the depth: walk on
+        // until they agree, the light that could show is spent, or the walk would leave the
+        // occupied region.
+        let visible = VISIBLE_DEPTH + shown.ln();
+        if landing.spread > LANDING_SPREAD {
+            // Through empty space between parts of the medium no brick holds a landing; the walk
+            // goes on (the density there is 0) to the next slice that has one.
+            let (mut at, mut walked) = (q, tau);
+            for _ in 0..MAX_FURTHER_SLICES {
+                if walked >= visible || tau + landing.depth >= visible {
+                    break;
+                }
+                walked += per_slice * sampler.sample(at + 0.5 * self.u);
+                at += self.u;
+                if let Some(next) = self.on_slice(at, cursor) {
+                    (tau, landing) = (walked, next);
+                    if landing.spread <= AGREED_SPREAD {
+                        break;
+                    }
+                }
             }
         }
-        self.trilinear(p, cursor)
+        tau + landing.depth
     }
 
     /// The depth at `q`, a point on a slice, between the slice's four voxels around it, bilinear
@@ -303,15 +352,22 @@ impl ShadowVolume {
     /// from τ, 13.7–17.0 % too bright from e^(−τ), within ±1.1 % from √τ (0.3–0.4 % from
     /// √τ at depth below 2, against 1.0–1.4 % from τ).
     #[inline]
-    fn on_slice(&self, q: Vec3, cursor: &mut ShadowCursor) -> Option<f32> {
+    fn on_slice(&self, q: Vec3, cursor: &mut ShadowCursor) -> Option<Landing> {
         let (cell, f) = floor_split(q);
         let (brick, i) = self.slice_cell(cell, cursor)?;
         let (b, c) = ((self.axis + 1) % 3, (self.axis + 2) % 3);
         let (sb, sc) = (STRIDES[b], STRIDES[c]);
         let (gb, gc) = (1.0 - f[b], 1.0 - f[c]);
-        let at = |o: usize| brick[i + o].sqrt();
-        let root = (at(0) * gc + at(sc) * f[c]) * gb + (at(sb) * gc + at(sb + sc) * f[c]) * f[b];
-        Some(root * root)
+        let depths = [brick[i], brick[i + sc], brick[i + sb], brick[i + sb + sc]];
+        let [r00, r01, r10, r11] = depths.map(f32::sqrt);
+        let root = (r00 * gc + r01 * f[c]) * gb + (r10 * gc + r11 * f[c]) * f[b];
+        let (lo, hi) = depths.iter().fold((f32::INFINITY, 0.0f32), |(lo, hi), &d| {
+            (lo.min(d), hi.max(d))
+        });
+        Some(Landing {
+            depth: root * root,
+            spread: hi - lo,
+        })
     }
 
     /// The brick and local index of slice voxel `cell`, whose cell across the light (`cell` +
@@ -388,6 +444,14 @@ impl ShadowVolume {
             + tiles(TileLevel::Root) * edge(TileLevel::Root).pow(3);
         bricks * BYTES_PER_BRICK
     }
+}
+
+/// A lookup's landing on a slice: the depth between the four voxels around it, and how far
+/// apart their depths are.
+#[derive(Debug, Clone, Copy)]
+struct Landing {
+    depth: f32,
+    spread: f32,
 }
 
 /// The brick a ray read last, so a lookup in the same block needs no hash.

@@ -53,6 +53,7 @@ fn step_at(p: Vec3, rho: f32, c: f32) -> Step {
         p,
         rho,
         scatter: c,
+        front: 1.0,
         tau: f32::INFINITY,
         tr: 0.0,
     }
