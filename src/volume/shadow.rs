@@ -318,8 +318,8 @@ impl ShadowVolume {
         };
         // Where the four depths around the landing point are far apart (a shadow's edge, a
         // surface the light grazes) no interpolation between them holds the depth: walk on
-        // until they agree, the light that could show is spent, or the walk would leave the
-        // occupied region.
+        // until they agree or the light that could show is spent, for at most
+        // MAX_FURTHER_SLICES; the depth is then the last landing's.
         let visible = VISIBLE_DEPTH + shown.ln();
         if landing.spread > LANDING_SPREAD {
             // Through empty space between parts of the medium no brick holds a landing; the walk
