@@ -320,8 +320,8 @@ impl ShadowVolume {
         // surface the light grazes) no interpolation between them holds the depth: walk on
         // until they agree or the light that could show is spent, for at most
         // MAX_FURTHER_SLICES; the depth is then the last landing's.
-        let visible = VISIBLE_DEPTH + shown.ln();
         if landing.spread > LANDING_SPREAD {
+            let visible = VISIBLE_DEPTH + shown.ln();
             // Through empty space between parts of the medium no brick holds a landing; the walk
             // goes on (the density there is 0) to the next slice that has one.
             let (mut at, mut walked) = (q, tau);
