@@ -17,11 +17,14 @@
 //!
 //! (the midpoint rule on the trilinear density, one sample per slice: Simpson's rule, at twice the
 //! samples, changed no figure of the accuracy report by more than 0.1 point and cost 45 % more).
-//! Slices are swept from the light's side, all the bricks of one slice in parallel, so the whole
-//! volume costs J density samples and four lookups per stored voxel — no ray per voxel. A slice voxel outside every brick is empty space; its depth is that of the
-//! occupied region it looks at, found by one ray march with empty-space skipping (memoised per
-//! brick slice), so light crossing a gap between two parts of a cloud still carries the first
-//! part's shadow.
+//! Slices are swept from the light's side in groups of J, whose landing slices all lie in the
+//! group before, all the bricks of a group in parallel: no ray per voxel. Every voxel is an
+//! integer point, so its samples and its landing point sit at the same offsets from a voxel for
+//! the whole volume, and a brick's slices are fixed-weight sums over the density gathered around
+//! it ([`Stencil`]). A landing voxel outside every brick is empty space; its depth is 0 where
+//! its line toward the light meets no brick ([`Casters`]), else that of the occupied region it
+//! looks at, found by one ray march with empty-space skipping, so light crossing a gap between
+//! two parts of a cloud still carries the first part's shadow.
 //!
 //! **Lookups.** A point p between slices walks toward the light to the next slice, and on for up
 //! to [`WALK_SLICES`] while it is inside the medium, integrating the density; it adds the depth
@@ -34,6 +37,8 @@
 //! point are far apart (a shadow's edge, a surface the light grazes) no interpolation holds, and
 //! the walk goes on, through empty space too, until they agree or the light that could reach the
 //! camera from there is spent ([`LANDING_SPREAD`], [`VISIBLE_DEPTH`]).
+
+use std::ops::RangeInclusive;
 
 use glam::{IVec3, Vec3};
 use hashbrown::HashMap;
@@ -171,92 +176,74 @@ impl ShadowVolume {
             layers.entry(k[axis]).or_default().push(i as u32);
         }
         let (lo, hi) = keys.iter().fold((i32::MAX, i32::MIN), |(lo, hi), k| {
-            (lo.min(k[axis] * BLOCK), hi.max(k[axis] * BLOCK + BLOCK))
+            (lo.min(k[axis]), hi.max(k[axis]))
         });
-        let slices: Vec<i32> = match toward > 0 {
-            true => (lo..=hi).rev().collect(),
-            false => (lo..=hi).collect(),
-        };
         let depth = OpticalDepth::new(field, sigma_t, true);
-        for s in slices {
-            // Bricks holding slice s: as their own voxels, or as the apron of the brick below.
-            let own = s.div_euclid(BLOCK);
-            let mut work: Vec<(u32, i32)> = Vec::new();
-            for (layer, local) in [(own, s - own * BLOCK), (own - 1, s - (own - 1) * BLOCK)] {
-                if local < DIM as i32 {
-                    if let Some(bricks) = layers.get(&layer) {
-                        work.extend(bricks.iter().map(|&i| (i, local)));
+        let stencil = Stencil::new(axis, u, sigma_t * length);
+        let casters = Casters::new(&keys, axis, u);
+        // Groups of J slices whose landing slices all lie in the group before (module doc, "The
+        // sweep"): toward +axis the slices 8m..8m+7, toward −axis 8m+1..8m+8. A group is the own
+        // slices of one layer of bricks, plus one slice that the next layer's bricks hold too
+        // (slice 8 of one brick is slice 0 of the next along the axis): where both bricks exist
+        // it is copied from the one that sweeps it with the rest of the group.
+        let groups: Vec<i32> = match toward > 0 {
+            true => (lo..=hi + 1).rev().collect(),
+            false => (lo - 1..=hi).collect(),
+        };
+        // The group's own slices of layer m; the layer m + `other` whose slice `fill` is layer
+        // m's slice `from`.
+        let (own, other, fill, from) = match toward > 0 {
+            true => (0..=BLOCK - 1, -1, BLOCK, 0),
+            false => (1..=BLOCK, 1, 0, BLOCK),
+        };
+        for m in groups {
+            let mut jobs: Vec<(u32, RangeInclusive<i32>)> = Vec::new();
+            let mut copies: Vec<(u32, u32)> = Vec::new();
+            for &i in layers.get(&m).into_iter().flatten() {
+                jobs.push((i, own.clone()));
+            }
+            for &i in layers.get(&(m + other)).into_iter().flatten() {
+                let mut holder = keys[i as usize];
+                holder[axis] = m;
+                match volume.entries.get(&holder) {
+                    Some(&j) => copies.push((i, j)),
+                    None => jobs.push((i, fill..=fill)),
+                }
+            }
+            let results: Vec<(u32, RangeInclusive<i32>, Vec<f32>)> = jobs
+                .into_par_iter()
+                .map(|(i, slices)| {
+                    let out =
+                        stencil.brick(&volume, field, keys[i as usize], slices.clone(), |v| {
+                            match casters.none_toward_light(v) {
+                                true => 0.0,
+                                false => -depth.transmittance(v.as_vec3(), direction).ln(),
+                            }
+                        });
+                    (i, slices, out)
+                })
+                .collect();
+            for (i, slices, out) in results {
+                let brick = &mut volume.depths[i as usize];
+                for (local, values) in slices.zip(out.chunks_exact(DIM * DIM)) {
+                    for jb in 0..DIM {
+                        for jc in 0..DIM {
+                            brick[local_index(slice_voxel(axis, local, jb, jc))] =
+                                values[jb * DIM + jc];
+                        }
                     }
                 }
             }
-            let results: Vec<(u32, i32, [f32; DIM * DIM])> = work
-                .par_iter()
-                .map(|&(i, local)| {
-                    let base = keys[i as usize] * BLOCK;
-                    let mut sampler = field.sampler();
-                    let mut outside: HashMap<IVec3, f32> = HashMap::new();
-                    let mut cursor = ShadowCursor::default();
-                    let mut out = [0f32; DIM * DIM];
-                    for jb in 0..DIM {
-                        for jc in 0..DIM {
-                            let p = (base + slice_voxel(axis, local, jb, jc)).as_vec3();
-                            let q = p + u * JUMP as f32;
-                            // The midpoint rule over each slice-to-slice step of the segment.
-                            let rho: f32 = (0..JUMP)
-                                .map(|k| sampler.sample(p + u * (k as f32 + 0.5)))
-                                .sum();
-                            let upstream = volume.bilinear(q, axis, &mut cursor, |voxel| {
-                                *outside.entry(voxel).or_insert_with(|| {
-                                    -depth.transmittance(voxel.as_vec3(), direction).ln()
-                                })
-                            });
-                            out[jb * DIM + jc] = upstream + sigma_t * length * rho;
-                        }
-                    }
-                    (i, local, out)
-                })
-                .collect();
-            for (i, local, out) in results {
-                let brick = &mut volume.depths[i as usize];
+            for (i, j) in copies {
                 for jb in 0..DIM {
                     for jc in 0..DIM {
-                        brick[local_index(slice_voxel(axis, local, jb, jc))] = out[jb * DIM + jc];
+                        volume.depths[i as usize][local_index(slice_voxel(axis, fill, jb, jc))] =
+                            volume.depths[j as usize][local_index(slice_voxel(axis, from, jb, jc))];
                     }
                 }
             }
         }
         volume
-    }
-
-    /// Optical depth at `q`, a point on a slice of `axis` (integer there), bilinear in the four
-    /// voxels around it; a voxel in no brick asks `outside`.
-    fn bilinear(
-        &self,
-        q: Vec3,
-        axis: usize,
-        cursor: &mut ShadowCursor,
-        mut outside: impl FnMut(IVec3) -> f32,
-    ) -> f32 {
-        let (base, f) = floor_split(q);
-        let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
-        let mut sum = 0.0;
-        for (db, wb) in [(0, 1.0 - f[b]), (1, f[b])] {
-            for (dc, wc) in [(0, 1.0 - f[c]), (1, f[c])] {
-                let w = wb * wc;
-                if w == 0.0 {
-                    continue;
-                }
-                let mut voxel = base;
-                voxel[b] += db;
-                voxel[c] += dc;
-                let value = match self.core_value(voxel, cursor) {
-                    Some(v) => v,
-                    None => outside(voxel),
-                };
-                sum += w * value;
-            }
-        }
-        sum
     }
 
     /// The depth at density voxel `voxel`, as swept (exact there, nothing interpolated), from the
@@ -443,6 +430,215 @@ impl ShadowVolume {
             + tiles(TileLevel::Node) * edge(TileLevel::Node).pow(3)
             + tiles(TileLevel::Root) * edge(TileLevel::Root).pow(3);
         bricks * BYTES_PER_BRICK
+    }
+}
+
+/// Where the bricks lie as seen from the light: a voxel outside every brick whose line toward the
+/// light meets none has depth 0, with no ray marched. Each brick's box (the only voxels where the
+/// density can be non-zero) is projected along the light onto the plane across `axis`, and a
+/// cell of that plane keeps the farthest reach toward the light of any box over it; a line
+/// whose cell reaches no further toward the light than its voxel meets nothing. The cells bound
+/// the boxes' projections, so the test may send a voxel to the march that needed none, never the
+/// other way round.
+struct Casters {
+    axis: usize,
+    toward: i32,
+    /// u across the axis, per slice: a line toward the light moves this much per slice.
+    shear: [f32; 2],
+    /// Per cell of [`BLOCK`]² voxels across the light: the largest `toward`·(axis coordinate)
+    /// of a box over it.
+    reach: HashMap<[i32; 2], i32>,
+}
+
+impl Casters {
+    fn new(keys: &[IVec3], axis: usize, u: Vec3) -> Casters {
+        let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
+        let mut casters = Casters {
+            axis,
+            toward: u[axis] as i32,
+            shear: [u[b], u[c]],
+            reach: HashMap::new(),
+        };
+        for key in keys {
+            let (lo, hi) = (*key * BLOCK, *key * BLOCK + BLOCK);
+            let reach = (casters.toward * lo[axis]).max(casters.toward * hi[axis]);
+            let corners = [lo[axis], hi[axis]].map(|along| {
+                [(lo, b, 0), (hi, b, 0), (lo, c, 1), (hi, c, 1)]
+                    .map(|(v, d, i)| casters.project(v[d], along, i))
+            });
+            let bound = |i: usize| {
+                let ends = corners.iter().flat_map(|p| [p[2 * i], p[2 * i + 1]]);
+                let (lo, hi) = ends.fold((f32::MAX, f32::MIN), |(l, h), x| (l.min(x), h.max(x)));
+                (cell(lo), cell(hi))
+            };
+            let (rb, rc) = (bound(0), bound(1));
+            for pb in rb.0..=rb.1 {
+                for pc in rc.0..=rc.1 {
+                    let r = casters.reach.entry([pb, pc]).or_insert(i32::MIN);
+                    *r = (*r).max(reach);
+                }
+            }
+        }
+        casters
+    }
+
+    /// Coordinate `across` along the `i`-th cross axis of a point at `along` on the axis,
+    /// moved along the light to the axis' plane 0.
+    fn project(&self, across: i32, along: i32, i: usize) -> f32 {
+        across as f32 - (self.toward * along) as f32 * self.shear[i]
+    }
+
+    /// Whether the line from voxel `v` toward the light meets no brick.
+    fn none_toward_light(&self, v: IVec3) -> bool {
+        let (b, c) = ((self.axis + 1) % 3, (self.axis + 2) % 3);
+        let at = [
+            cell(self.project(v[b], v[self.axis], 0)),
+            cell(self.project(v[c], v[self.axis], 1)),
+        ];
+        self.reach
+            .get(&at)
+            .is_none_or(|&reach| reach <= self.toward * v[self.axis])
+    }
+}
+
+/// The cell of [`BLOCK`] voxels a projected coordinate lies in.
+fn cell(x: f32) -> i32 {
+    (x / BLOCK as f32).floor() as i32
+}
+
+/// One step of the sweep as fixed weights. Every voxel p of a slice is an integer point, so the
+/// points it samples, p + (k + ½)·u, and the point it lands on, p + J·u, sit at the same offset
+/// from a voxel for all of them: the trilinear weights are the same across the slice, and a
+/// brick's slices are sums of fixed-offset loads from the density gathered around it, where
+/// sampling each point costs a floor, a block lookup and a blend.
+struct Stencil {
+    axis: usize,
+    /// ±1: the direction along `axis` toward the light.
+    toward: i32,
+    /// σt·ℓ: the depth of one slice-to-slice step at density 1.
+    per_slice: f32,
+    /// For each of the J samples: the voxel offset across the light (along the two other axes)
+    /// of its lower corner, and the fractions there.
+    samples: [([i32; 2], [f32; 2]); JUMP as usize],
+    /// The same for the landing point J slices on.
+    landing: ([i32; 2], [f32; 2]),
+}
+
+impl Stencil {
+    fn new(axis: usize, u: Vec3, per_slice: f32) -> Stencil {
+        let across = |along: f32| {
+            let x = [(axis + 1) % 3, (axis + 2) % 3].map(|d| along * u[d]);
+            (x.map(|x| x.floor() as i32), x.map(|x| x - x.floor()))
+        };
+        Stencil {
+            axis,
+            toward: u[axis] as i32,
+            per_slice,
+            samples: std::array::from_fn(|k| across(k as f32 + 0.5)),
+            landing: across(JUMP as f32),
+        }
+    }
+
+    /// The depths of local slices `slices` of the brick of block `key` (81 per slice, in the
+    /// order of [`slice_voxel`]), from the density around it and the depths J slices toward the
+    /// light, which the volume already holds; a landing voxel in no brick asks `outside`.
+    fn brick(
+        &self,
+        volume: &ShadowVolume,
+        field: &DensityField,
+        key: IVec3,
+        slices: RangeInclusive<i32>,
+        outside: impl Fn(IVec3) -> f32,
+    ) -> Vec<f32> {
+        let (a, b, c) = (self.axis, (self.axis + 1) % 3, (self.axis + 2) % 3);
+        let base = key * BLOCK;
+        let (s0, s1) = (*slices.start(), *slices.end());
+        // The density box the samples read, in local coordinates of the brick (inclusive).
+        let along = match self.toward > 0 {
+            true => (s0, s1 + JUMP),
+            false => (s0 - JUMP, s1),
+        };
+        let reach = |d: usize| {
+            let offsets = self.samples.iter().map(|(o, _)| o[d]);
+            let (lo, hi) = offsets.fold((i32::MAX, i32::MIN), |(l, h), o| (l.min(o), h.max(o)));
+            (lo, DIM as i32 + hi)
+        };
+        let ranges = [along, reach(0), reach(1)];
+        let n = ranges.map(|(lo, hi)| (hi - lo + 1) as usize);
+        let (mut lo, mut dim) = (IVec3::ZERO, IVec3::ZERO);
+        for (d, axis) in [a, b, c].into_iter().enumerate() {
+            lo[axis] = base[axis] + ranges[d].0;
+            dim[axis] = n[d] as i32;
+        }
+        let mut rho = vec![0f32; n.iter().product()];
+        field.sampler().gather(lo, dim, &mut rho);
+        // The midplanes between consecutive slices, where every sample lies (a half-integer
+        // along the axis), in (axis, across, across) order.
+        let strides = [(dim.y * dim.z) as usize, dim.z as usize, 1];
+        let (sa, sb, sc) = (strides[a], strides[b], strides[c]);
+        let plane = n[1] * n[2];
+        let mut mid = vec![0f32; (n[0] - 1) * plane];
+        for (j, out) in mid.chunks_exact_mut(plane).enumerate() {
+            for ib in 0..n[1] {
+                for ic in 0..n[2] {
+                    let at = j * sa + ib * sb + ic * sc;
+                    out[ib * n[2] + ic] = 0.5 * (rho[at] + rho[at + sa]);
+                }
+            }
+        }
+        let mut cursor = ShadowCursor::default();
+        let mut out = Vec::with_capacity((s1 - s0 + 1) as usize * DIM * DIM);
+        for local in slices {
+            // The slice's landing depths, read once each: 10 × 10 around the shifted slice.
+            let mut landed = [[None::<f32>; DIM + 1]; DIM + 1];
+            let ([lb, lc], [fb, fc]) = self.landing;
+            let mut upstream = |jb: usize, jc: usize| {
+                *landed[jb][jc].get_or_insert_with(|| {
+                    let mut voxel = base;
+                    voxel[a] += local + JUMP * self.toward;
+                    voxel[b] += jb as i32 + lb;
+                    voxel[c] += jc as i32 + lc;
+                    volume
+                        .core_value(voxel, &mut cursor)
+                        .unwrap_or_else(|| outside(voxel))
+                })
+            };
+            // The density summed over the J samples of each voxel, a row across the light at a
+            // time: for one sample the row's loads are contiguous.
+            let mut rho_sum = [[0f32; DIM]; DIM];
+            for (k, ([ob, oc], [fb, fc])) in self.samples.iter().enumerate() {
+                let k = k as i32;
+                let j = (local + k * self.toward).min(local + (k + 1) * self.toward);
+                let start = (j - ranges[0].0) as usize * plane
+                    + (ob - ranges[1].0) as usize * n[2]
+                    + (oc - ranges[2].0) as usize;
+                for (jb, sums) in rho_sum.iter_mut().enumerate() {
+                    let at = start + jb * n[2];
+                    let (r0, r1) = (&mid[at..at + DIM + 1], &mid[at + n[2]..at + n[2] + DIM + 1]);
+                    for jc in 0..DIM {
+                        let row0 = r0[jc] + (r0[jc + 1] - r0[jc]) * fc;
+                        let row1 = r1[jc] + (r1[jc + 1] - r1[jc]) * fc;
+                        sums[jc] += row0 + (row1 - row0) * fb;
+                    }
+                }
+            }
+            for (jb, sums) in rho_sum.iter().enumerate() {
+                for (jc, &sum) in sums.iter().enumerate() {
+                    // Bilinear in the landing slice, skipping taps of zero weight (an axis-aligned
+                    // light's, whose voxel may lie outside every brick).
+                    let mut landing = 0.0;
+                    for (db, wb) in [(0, 1.0 - fb), (1, fb)] {
+                        for (dc, wc) in [(0, 1.0 - fc), (1, fc)] {
+                            if wb * wc != 0.0 {
+                                landing += wb * wc * upstream(jb + db, jc + dc);
+                            }
+                        }
+                    }
+                    out.push(landing + self.per_slice * sum);
+                }
+            }
+        }
+        out
     }
 }
 
