@@ -393,18 +393,23 @@ fn lines(layout: &TransferLayout, off: IVec3) -> (Sweep, Vec<u32>) {
         let t = v[axis] * off[axis];
         (v - off * t, t)
     };
-    let mut order: Vec<u32> = (0..n as u32).collect();
-    order.sort_unstable_by_key(|&s| {
-        let (key, t) = line(voxels[s as usize]);
-        (key.x, key.y, key.z, t)
-    });
+    // The sort keys computed once per cell, not at every comparison.
+    let mut order: Vec<([i32; 4], u32)> = voxels
+        .iter()
+        .enumerate()
+        .map(|(s, &v)| {
+            let (key, t) = line(v);
+            ([key.x, key.y, key.z, t], s as u32)
+        })
+        .collect();
+    order.sort_unstable();
     let mut place = vec![0u32; n];
     let mut links = Vec::with_capacity(n);
     let mut tasks = vec![0];
     let mut previous = None;
-    for (i, &s) in order.iter().enumerate() {
+    for (i, &([x, y, z, _], s)) in order.iter().enumerate() {
         place[s as usize] = i as u32;
-        let key = line(voxels[s as usize]).0;
+        let key = IVec3::new(x, y, z);
         let start = previous != Some(key);
         previous = Some(key);
         if start && i - tasks[tasks.len() - 1] >= TASK_LINKS {
