@@ -20,7 +20,7 @@ use crate::transfer::memory::BakePlan;
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
 use crate::transfer::packing::Precision;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLight};
-use crate::volume::{load_density, DensityField};
+use crate::volume::{load_density, DensityField, SparseGrid, Transform};
 
 /// How to bake, validated: the grid to read, the medium, the bake settings and the cache's form.
 #[derive(Debug, Clone)]
@@ -140,7 +140,10 @@ impl Scene {
         let current = cache::read_header(path)?
             .is_some_and(|h| h.grid == origin.grid && baked_from(&h, &origin.source, config));
         if current {
-            self.transfer = Some(cache::read(path)?.transfer);
+            // The density too: the cache holds it as the bake's render did ([`Scene::bake`]).
+            let c = cache::read(path)?;
+            self.field = DensityField::without_bricks(c.density);
+            self.transfer = Some(c.transfer);
             self.forget_suns();
         }
         Ok(current)
@@ -154,8 +157,16 @@ impl Scene {
     /// Bakes the transfer (check [`BakePlan::check_budget`] first: a bake allocates what its
     /// plan says), reporting its phases to `progress`.
     pub fn bake(&mut self, config: &BakeConfig, progress: &dyn Phases) -> BakeStats {
-        let (transfer, stats) =
+        let (mut transfer, stats) =
             crate::transfer::bake(&mut self.field, config.medium, &config.settings, progress);
+        // Held as its cache will hold it (`config.precision`), so a render of this bake and one
+        // of its cache are the same image.
+        if config.precision != Precision::F32 {
+            let none = DensityField::without_bricks(SparseGrid::new(Transform::default(), 0.0));
+            let field = std::mem::replace(&mut self.field, none);
+            let grid = cache::as_stored(field.grid, &mut transfer, config.precision);
+            self.field = DensityField::without_bricks(grid);
+        }
         self.medium = config.medium;
         self.transfer = Some(transfer);
         self.forget_suns();

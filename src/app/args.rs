@@ -154,9 +154,10 @@ pub struct BakeArgs {
     /// Seed of the direction-set rotations (and of path tracing).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub seed: u64,
-    /// How the cache stores the transfer: f32 exactly; f16 (the density too) at half the size;
-    /// q8 (8 bits per coefficient, scaled per band) at a third (docs/cache-format.md).
-    #[arg(long, value_enum, value_name = "P", default_value_t = Precision::F32)]
+    /// How a bake holds and its cache stores the transfer: q8 (8 bits per coefficient, scaled
+    /// per band; images within 0.1 %) at a third of f32's size; f16 (the density too) at half;
+    /// f32 exactly (docs/cache-format.md).
+    #[arg(long, value_enum, value_name = "P", default_value_t = Precision::default())]
     pub cache_precision: Precision,
     /// Same as `--cache-precision f16`.
     #[arg(long, conflicts_with = "cache_precision")]

@@ -268,9 +268,7 @@ pub fn header(
         tiles: TileLevel::ALL.map(|l| density.tiles(l).count() as u64),
         transfer_voxels: transfer.layout.len() as u64,
         coefficients: precision,
-        density: match precision.density_f16()
-            && packing::fits_f16(density.leaves().iter().flat_map(active_values))
-        {
+        density: match density_f16(density, precision) {
             true => Precision::F16,
             false => Precision::F32,
         },
@@ -344,7 +342,13 @@ pub fn write(
         })?;
         for values in [t_ri, f_ms] {
             put_section(&mut w, |s| {
-                packing::put_coefficients(s, &values.to_f32(coeffs), coeffs, header.coefficients)
+                match values.precision() == header.coefficients {
+                    true => packing::put_coefficients(s, values),
+                    false => packing::put_coefficients(
+                        s,
+                        &packing::encode(&values.to_f32(coeffs), coeffs, header.coefficients),
+                    ),
+                }
             })?;
         }
         let shape = transfer.shape.as_deref();
@@ -374,6 +378,58 @@ fn active_values(leaf: &Leaf) -> impl Iterator<Item = f32> + '_ {
         .map(|i| leaf.values.get(i))
 }
 
+/// A leaf as a cache reads it back: its `active` values in voxel order, the background
+/// elsewhere, held as f16 when the cache stores the density so.
+fn stored_leaf(
+    origin: IVec3,
+    mask: [u64; 8],
+    active: impl Iterator<Item = f32>,
+    background: f32,
+    f16: bool,
+) -> Leaf {
+    let mut array = [background; LEAF_VOXELS];
+    let slots = (0..LEAF_VOXELS).filter(|&i| Leaf::is_set(&mask, i));
+    for (slot, v) in slots.zip(active) {
+        array[slot] = v;
+    }
+    let leaf = Leaf::new(origin, mask, array, background);
+    match f16 {
+        true => leaf.into_f16(),
+        false => leaf,
+    }
+}
+
+/// Whether a cache of `precision` stores `density`'s values as f16: when its coefficients are
+/// reduced and every active value is a finite f16.
+fn density_f16(density: &SparseGrid, precision: Precision) -> bool {
+    precision.density_f16() && packing::fits_f16(density.leaves().iter().flat_map(active_values))
+}
+
+/// The density and transfer of a bake as a cache of `precision` holds them once read back, so a
+/// render of the bake equals, bit for bit, a render of the cache it writes (at f32: as they are).
+pub fn as_stored(density: SparseGrid, transfer: &mut Transfer, precision: Precision) -> SparseGrid {
+    if precision == Precision::F32 {
+        return density;
+    }
+    let coeffs = transfer.bands * transfer.bands;
+    if let TransferLight::Coefficients { t_ri, f_ms } = &mut transfer.light {
+        for values in [t_ri, f_ms] {
+            if values.precision() != precision {
+                *values = packing::encode(&values.to_f32(coeffs), coeffs, precision);
+            }
+        }
+    }
+    let f16 = density_f16(&density, precision);
+    let background = density.background;
+    density.map_leaves(|leaf| {
+        let active = active_values(leaf).map(|v| match f16 {
+            true => half::f16::from_f32(v).to_f32(),
+            false => v,
+        });
+        stored_leaf(leaf.origin, leaf.mask, active, background, f16)
+    })
+}
+
 /// Active voxels in a leaf's mask.
 fn active_count(mask: &[u64; 8]) -> usize {
     mask.iter().map(|w| w.count_ones() as usize).sum()
@@ -401,16 +457,14 @@ impl LeafFill {
             while let Some((origin, mask, _)) =
                 self.leaves.next_if(|(_, _, n)| *n == self.pending.len())
             {
-                let mut array = [grid.background; LEAF_VOXELS];
-                let slots = (0..LEAF_VOXELS).filter(|&i| Leaf::is_set(&mask, i));
-                for (slot, v) in slots.zip(self.pending.drain(..)) {
-                    array[slot] = v;
-                }
-                let leaf = Leaf::new(origin, mask, array, grid.background);
-                grid.push_leaf(match self.f16 {
-                    true => leaf.into_f16(),
-                    false => leaf,
-                });
+                let leaf = stored_leaf(
+                    origin,
+                    mask,
+                    self.pending.drain(..),
+                    grid.background,
+                    self.f16,
+                );
+                grid.push_leaf(leaf);
             }
             if values.is_empty() {
                 return Ok(());

@@ -14,6 +14,7 @@ use half::f16;
 use half::slice::HalfFloatSliceExt;
 
 use crate::light::sh::MAX_BANDS;
+use crate::transfer::packing::Precision;
 
 /// The largest magnitude of a q8 coefficient: 8-bit signed, symmetric.
 pub const Q8_MAX: f32 = 127.0;
@@ -47,6 +48,15 @@ impl Coefficients {
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+
+    /// The precision the values are held at.
+    pub fn precision(&self) -> Precision {
+        match self {
+            Coefficients::F32(_) => Precision::F32,
+            Coefficients::F16(_) => Precision::F16,
+            Coefficients::Q8 { .. } => Precision::Q8,
+        }
     }
 
     /// Bytes held.

@@ -23,12 +23,19 @@ const CHUNK_VALUES: usize = 1 << 14;
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
     /// 32-bit floats: the bake exactly.
-    #[default]
     F32,
-    /// 16-bit floats, the density too: half the size; images move by about 0.01 % (docs/benchmarks.md).
+    /// 16-bit floats, the density too: half the size; images move by about 0.01 %
+    /// (docs/cache-format.md).
     F16,
     /// 8 bits per coefficient scaled per voxel and band, the DC term and the density as 16-bit
-    /// floats: a third of the size; images move by 0.05–0.1 % (docs/benchmarks.md).
+    /// floats: a third of the size; images move by 0.01–0.07 % (docs/cache-format.md).
+    ///
+    /// The default: no render measured moved by more than 0.07 % relative RMSE (the fixtures at
+    /// σt 1 and 0.1 under studio, split and the built-in sky; the quarter-size bench cloud), while
+    /// a cache is a third of f32's (1.86× the quarter-size cloud's VDB, against 5.7×) and a render
+    /// holds the density as f16. A bake is held at its precision before it renders
+    /// ([`super::cache::as_stored`]), so a render of a VDB and one of its cache are the same image.
+    #[default]
     Q8,
 }
 
@@ -196,35 +203,47 @@ impl<'a> SectionReader<'a> {
     }
 }
 
-/// Writes `values`, `coeffs` per voxel, at `precision`. For q8, each voxel's DC term is an f16;
-/// each higher band l has an f16 scale s ≥ max |c| over its 2l + 1 coefficients and stores
-/// round(127·c/s) in a signed byte. Laid out as all DC terms, all scales, then all bytes.
-pub fn put_coefficients(
-    w: &mut SectionWriter,
-    values: &[f32],
-    coeffs: usize,
-    precision: Precision,
-) -> std::io::Result<()> {
+/// `values`, `coeffs` per voxel, held at `precision` as a cache stores them. For q8, each voxel's
+/// DC term is an f16; each higher band l has an f16 scale s ≥ max |c| over its 2l + 1
+/// coefficients and stores round(127·c/s) in a signed byte.
+pub fn encode(values: &[f32], coeffs: usize, precision: Precision) -> Coefficients {
     match precision {
-        Precision::F32 => w.shuffled(values.iter().map(|v| v.to_le_bytes())),
-        Precision::F16 => w.shuffled(values.iter().map(|v| to_f16(*v).to_le_bytes())),
+        Precision::F32 => Coefficients::F32(values.to_vec()),
+        Precision::F16 => Coefficients::F16(values.iter().map(|v| to_f16(*v)).collect()),
         Precision::Q8 => {
             let bands = bands_of(coeffs);
             let voxels = || values.chunks_exact(coeffs);
-            w.shuffled(voxels().map(|c| to_f16(c[0]).to_le_bytes()))?;
-            // Each band's scale once: the scales section and the bytes both use it.
+            // Each band's scale once: the scales and the bytes both use it.
             let scales: Vec<half::f16> = voxels()
                 .flat_map(|c| (1..bands).map(move |l| scale(band(c, l))))
                 .collect();
-            w.shuffled(scales.iter().map(|s| s.to_le_bytes()))?;
             let mut s = scales.iter();
-            let bytes: Vec<u8> = voxels()
+            let bytes: Vec<i8> = voxels()
                 .flat_map(|c| (1..bands).map(move |l| band(c, l)))
                 .flat_map(|band| {
                     let s = s.next().map_or(0.0, |s| s.to_f32());
-                    band.iter().map(move |v| quantise(*v, s) as u8)
+                    band.iter().map(move |v| quantise(*v, s))
                 })
                 .collect();
+            Coefficients::Q8 {
+                dc: voxels().map(|c| to_f16(c[0])).collect(),
+                scales,
+                bytes,
+            }
+        }
+    }
+}
+
+/// Writes coefficients held as [`encode`] holds them, laid out for q8 as all DC terms, all
+/// scales, then all bytes.
+pub fn put_coefficients(w: &mut SectionWriter, held: &Coefficients) -> std::io::Result<()> {
+    match held {
+        Coefficients::F32(v) => w.shuffled(v.iter().map(|v| v.to_le_bytes())),
+        Coefficients::F16(v) => w.shuffled(v.iter().map(|v| v.to_le_bytes())),
+        Coefficients::Q8 { dc, scales, bytes } => {
+            w.shuffled(dc.iter().map(|v| v.to_le_bytes()))?;
+            w.shuffled(scales.iter().map(|v| v.to_le_bytes()))?;
+            let bytes: Vec<u8> = bytes.iter().map(|&b| b as u8).collect();
             w.bytes(&bytes)
         }
     }
@@ -366,7 +385,7 @@ mod tests {
 
     fn round_trip(values: &[f32], coeffs: usize, precision: Precision) -> Vec<f32> {
         let mut w = SectionWriter::new().unwrap();
-        put_coefficients(&mut w, values, coeffs, precision).unwrap();
+        put_coefficients(&mut w, &encode(values, coeffs, precision)).unwrap();
         let frame = w.finish().unwrap();
         let mut r = SectionReader::new(&frame[..]).unwrap();
         let out = get_coefficients(&mut r, values.len() / coeffs, coeffs, precision).unwrap();
@@ -398,10 +417,13 @@ mod tests {
             let v: Vec<f32> = sample(voxels).into_iter().take(voxels * coeffs).collect();
             for precision in [Precision::F32, Precision::F16, Precision::Q8] {
                 let mut w = SectionWriter::new().unwrap();
-                put_coefficients(&mut w, &v, coeffs, precision).unwrap();
+                let encoded = encode(&v, coeffs, precision);
+                put_coefficients(&mut w, &encoded).unwrap();
                 let frame = w.finish().unwrap();
                 let mut r = SectionReader::new(&frame[..]).unwrap();
                 let held = get_coefficients(&mut r, voxels, coeffs, precision).unwrap();
+                // What is read back is what was held before it was written.
+                assert_eq!(held, encoded, "{precision:?}");
                 let mut r = SectionReader::new(&frame[..]).unwrap();
                 let mut streamed = Vec::new();
                 each_voxel_batch(&mut r, voxels, coeffs, precision, |batch| {

@@ -9,6 +9,7 @@ use glam::{DVec3, IVec3, Vec3};
 use half::f16;
 use half::slice::HalfFloatSliceExt;
 use hashbrown::HashMap;
+use rayon::prelude::*;
 
 use crate::math::ray::Ray;
 
@@ -321,6 +322,23 @@ impl SparseGrid {
 
     pub fn leaves(&self) -> &[Leaf] {
         &self.leaves
+    }
+
+    /// This grid with each leaf made anew by `f` (same origin and mask, in the same order), and
+    /// the node maxima of what it makes.
+    pub fn map_leaves(self, f: impl Fn(&Leaf) -> Leaf + Sync + Send) -> SparseGrid {
+        let leaves: Vec<Leaf> = self.leaves.par_iter().map(f).collect();
+        let mut grid = SparseGrid::new(self.transform, self.background);
+        grid.reserve_leaves(leaves.len());
+        for level in TileLevel::ALL {
+            for (origin, value) in self.tiles(level) {
+                grid.insert_tile(level, origin, value);
+            }
+        }
+        for leaf in leaves {
+            grid.push_leaf(leaf);
+        }
+        grid
     }
 
     /// Clamps negative tile values to zero (a density cannot be negative).
