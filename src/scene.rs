@@ -20,7 +20,7 @@ use crate::transfer::memory::BakePlan;
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
 use crate::transfer::packing::Precision;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLight};
-use crate::volume::{load_density, DensityField, SparseGrid, Transform};
+use crate::volume::{load_density, DensityField};
 
 /// How to bake, validated: the grid to read, the medium, the bake settings and the cache's form.
 #[derive(Debug, Clone)]
@@ -161,10 +161,7 @@ impl Scene {
             crate::transfer::bake(&mut self.field, config.medium, &config.settings, progress);
         // Held as its cache will hold it (`config.precision`), so a render of this bake and one
         // of its cache are the same image.
-        if config.precision != Precision::F32 {
-            let none = DensityField::without_bricks(SparseGrid::new(Transform::default(), 0.0));
-            let field = std::mem::replace(&mut self.field, none);
-            let grid = cache::as_stored(field.grid, &mut transfer, config.precision);
+        if let Some(grid) = cache::as_stored(&self.field.grid, &mut transfer, config.precision) {
             self.field = DensityField::without_bricks(grid);
         }
         self.medium = config.medium;

@@ -406,10 +406,15 @@ fn density_f16(density: &SparseGrid, precision: Precision) -> bool {
 }
 
 /// The density and transfer of a bake as a cache of `precision` holds them once read back, so a
-/// render of the bake equals, bit for bit, a render of the cache it writes (at f32: as they are).
-pub fn as_stored(density: SparseGrid, transfer: &mut Transfer, precision: Precision) -> SparseGrid {
+/// render of the bake equals, bit for bit, a render of the cache it writes: the transfer in place
+/// and the density anew (`None` at f32, where both are held as they are).
+pub fn as_stored(
+    density: &SparseGrid,
+    transfer: &mut Transfer,
+    precision: Precision,
+) -> Option<SparseGrid> {
     if precision == Precision::F32 {
-        return density;
+        return None;
     }
     let coeffs = transfer.bands * transfer.bands;
     if let TransferLight::Coefficients { t_ri, f_ms } = &mut transfer.light {
@@ -419,15 +424,15 @@ pub fn as_stored(density: SparseGrid, transfer: &mut Transfer, precision: Precis
             }
         }
     }
-    let f16 = density_f16(&density, precision);
+    let f16 = density_f16(density, precision);
     let background = density.background;
-    density.map_leaves(|leaf| {
+    Some(density.map_leaves(|leaf| {
         let active = active_values(leaf).map(|v| match f16 {
             true => half::f16::from_f32(v).to_f32(),
             false => v,
         });
         stored_leaf(leaf.origin, leaf.mask, active, background, f16)
-    })
+    }))
 }
 
 /// Active voxels in a leaf's mask.

@@ -324,9 +324,9 @@ impl SparseGrid {
         &self.leaves
     }
 
-    /// This grid with each leaf made anew by `f` (same origin and mask, in the same order), and
-    /// the node maxima of what it makes.
-    pub fn map_leaves(self, f: impl Fn(&Leaf) -> Leaf + Sync + Send) -> SparseGrid {
+    /// A copy of this grid with each leaf made anew by `f` (same origin and mask, in the same
+    /// order), and the node maxima of what it makes.
+    pub fn map_leaves(&self, f: impl Fn(&Leaf) -> Leaf + Sync + Send) -> SparseGrid {
         let leaves: Vec<Leaf> = self.leaves.par_iter().map(f).collect();
         let mut grid = SparseGrid::new(self.transform, self.background);
         grid.reserve_leaves(leaves.len());

@@ -117,14 +117,21 @@ const MAX_FURTHER_SLICES: u32 = 128;
 /// Offsets of one step along x, y and z in a brick.
 const STRIDES: [usize; 3] = [DIM * DIM, DIM, 1];
 
+/// The two axes across the light when it is closest to `axis`, in the order every slice uses.
+#[inline]
+fn across(axis: usize) -> [usize; 2] {
+    [(axis + 1) % 3, (axis + 2) % 3]
+}
+
 /// The local voxel at `local` along `axis` and (`jb`, `jc`) along the two others, in the order
 /// the sweep's slice buffers use.
 #[inline]
 fn slice_voxel(axis: usize, local: i32, jb: usize, jc: usize) -> IVec3 {
+    let [b, c] = across(axis);
     let mut l = IVec3::ZERO;
     l[axis] = local;
-    l[(axis + 1) % 3] = jb as i32;
-    l[(axis + 2) % 3] = jc as i32;
+    l[b] = jb as i32;
+    l[c] = jc as i32;
     l
 }
 
@@ -342,7 +349,7 @@ impl ShadowVolume {
     fn on_slice(&self, q: Vec3, cursor: &mut ShadowCursor) -> Option<Landing> {
         let (cell, f) = floor_split(q);
         let (brick, i) = self.slice_cell(cell, cursor)?;
-        let (b, c) = ((self.axis + 1) % 3, (self.axis + 2) % 3);
+        let [b, c] = across(self.axis);
         let (sb, sc) = (STRIDES[b], STRIDES[c]);
         let (gb, gc) = (1.0 - f[b], 1.0 - f[c]);
         let depths = [brick[i], brick[i + sc], brick[i + sb], brick[i + sb + sc]];
@@ -452,22 +459,22 @@ struct Casters {
 
 impl Casters {
     fn new(keys: &[IVec3], axis: usize, u: Vec3) -> Casters {
-        let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
+        let cross = across(axis);
         let mut casters = Casters {
             axis,
             toward: u[axis] as i32,
-            shear: [u[b], u[c]],
+            shear: cross.map(|d| u[d]),
             reach: HashMap::new(),
         };
         for key in keys {
             let (lo, hi) = (*key * BLOCK, *key * BLOCK + BLOCK);
             let reach = (casters.toward * lo[axis]).max(casters.toward * hi[axis]);
-            let corners = [lo[axis], hi[axis]].map(|along| {
-                [(lo, b, 0), (hi, b, 0), (lo, c, 1), (hi, c, 1)]
-                    .map(|(v, d, i)| casters.project(v[d], along, i))
-            });
+            // The cells the box's projection covers along cross axis i: its corners projected.
             let bound = |i: usize| {
-                let ends = corners.iter().flat_map(|p| [p[2 * i], p[2 * i + 1]]);
+                let d = cross[i];
+                let ends = [lo[axis], hi[axis]]
+                    .into_iter()
+                    .flat_map(|along| [lo[d], hi[d]].map(|v| casters.project(v, along, i)));
                 let (lo, hi) = ends.fold((f32::MAX, f32::MIN), |(l, h), x| (l.min(x), h.max(x)));
                 (cell(lo), cell(hi))
             };
@@ -490,7 +497,7 @@ impl Casters {
 
     /// Whether the line from voxel `v` toward the light meets no brick.
     fn none_toward_light(&self, v: IVec3) -> bool {
-        let (b, c) = ((self.axis + 1) % 3, (self.axis + 2) % 3);
+        let [b, c] = across(self.axis);
         let at = [
             cell(self.project(v[b], v[self.axis], 0)),
             cell(self.project(v[c], v[self.axis], 1)),
@@ -527,7 +534,7 @@ struct Stencil {
 impl Stencil {
     fn new(axis: usize, u: Vec3, per_slice: f32) -> Stencil {
         let across = |along: f32| {
-            let x = [(axis + 1) % 3, (axis + 2) % 3].map(|d| along * u[d]);
+            let x = across(axis).map(|d| along * u[d]);
             (x.map(|x| x.floor() as i32), x.map(|x| x - x.floor()))
         };
         Stencil {
@@ -550,7 +557,7 @@ impl Stencil {
         slices: RangeInclusive<i32>,
         outside: impl Fn(IVec3) -> f32,
     ) -> Vec<f32> {
-        let (a, b, c) = (self.axis, (self.axis + 1) % 3, (self.axis + 2) % 3);
+        let (a, [b, c]) = (self.axis, across(self.axis));
         let base = key * BLOCK;
         let (s0, s1) = (*slices.start(), *slices.end());
         // The density box the samples read, in local coordinates of the brick (inclusive).
