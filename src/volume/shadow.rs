@@ -533,7 +533,8 @@ struct Stencil {
 
 impl Stencil {
     fn new(axis: usize, u: Vec3, per_slice: f32) -> Stencil {
-        let across = |along: f32| {
+        // The voxel offset and fractions across the light of the point `along` slices on.
+        let offset = |along: f32| {
             let x = across(axis).map(|d| along * u[d]);
             (x.map(|x| x.floor() as i32), x.map(|x| x - x.floor()))
         };
@@ -541,8 +542,8 @@ impl Stencil {
             axis,
             toward: u[axis] as i32,
             per_slice,
-            samples: std::array::from_fn(|k| across(k as f32 + 0.5)),
-            landing: across(JUMP as f32),
+            samples: std::array::from_fn(|k| offset(k as f32 + 0.5)),
+            landing: offset(JUMP as f32),
         }
     }
 
