@@ -43,8 +43,9 @@ const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// framing box are recorded. 4: compressed sections, active density values only, and the q8
 /// precision. 5: T_ri fitted over the trilinear fringe and pulled toward the footprint means
 /// (a version-4 fit could light hot pixels). 6: the visibility that shapes the direct light
-/// (`transfer::shape`), baked and stored.
-pub const VERSION: u32 = 6;
+/// (`transfer::shape`), baked and stored. 7: the visibility interpolated in −ln V, and its node
+/// values fitted so.
+pub const VERSION: u32 = 7;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
 /// Bytes of a leaf's origin and mask in the leaves section, and of a tile in the tiles section.

@@ -29,6 +29,7 @@ use rayon::prelude::*;
 
 use super::layout::TransferLayout;
 use crate::volume::grid::{Block, Leaf, LEAF_LOG2};
+use crate::volume::visibility::from_stored;
 use crate::volume::SparseGrid;
 
 /// Conjugate-gradient iterations. The mass matrix of trilinear hats is well conditioned (its
@@ -148,6 +149,11 @@ impl Quadrature {
     /// the cube −K..=K around the node read a block at a time, then, since point j of an axis lies
     /// midway between voxels j and j + 1 of the cube, averaged in pairs one axis after another.
     fn values(&self, grid: &SparseGrid, v: IVec3) -> Vec<f32> {
+        self.values_of(grid, v, |x| x)
+    }
+
+    /// [`Self::values`] of `map` applied to every voxel of `grid`.
+    fn values_of(&self, grid: &SparseGrid, v: IVec3, map: impl Fn(f32) -> f32) -> Vec<f32> {
         let k = self.k;
         let (n, m) = (self.n, self.n + 1);
         let lo = v * k - k;
@@ -164,12 +170,12 @@ impl Quadrature {
                         for y in b_lo.y..=b_hi.y {
                             for z in b_lo.z..=b_hi.z {
                                 let at = (x as usize * m + y as usize) * m + z as usize;
-                                cube[at] = match block {
+                                cube[at] = map(match block {
                                     Block::Leaf(leaf) => {
                                         leaf.values.get(Leaf::slot(lo + IVec3::new(x, y, z)))
                                     }
                                     Block::Constant(c) => c,
-                                };
+                                });
                             }
                         }
                     }
@@ -347,15 +353,14 @@ fn row(density: &SparseGrid, layout: &TransferLayout, quadrature: &Quadrature, v
     }
 }
 
-/// Least-squares node values of the field whose density-weighted values are `weighted` (ρ·f on
-/// the density's topology, as [`crate::volume::visibility::Visibility`] keeps V), fitted as a
-/// single-scattering transfer's T_ri is: each node's footprint mean of f over ρ·w_n, exact from
-/// the quadrature's points (f = trilinear ρ·f over trilinear ρ, as the renderer reads it), then
-/// [`least_squares`] with [`FIT_REGULARISATION`].
-pub fn fitted_field(
+/// Least-squares node values of the visibility V kept as `kept` (on the density's topology, as
+/// [`crate::volume::visibility::Visibility`] keeps it), fitted as a single-scattering transfer's
+/// T_ri is: each node's footprint mean of V over ρ·w_n, exact from the quadrature's points (V
+/// read there as the renderer reads it), then [`least_squares`] with [`FIT_REGULARISATION`].
+pub fn fitted_visibility(
     density: &SparseGrid,
     layout: &TransferLayout,
-    weighted: &SparseGrid,
+    kept: &SparseGrid,
 ) -> Vec<f32> {
     let quadrature = Quadrature::new(layout.k);
     let mut means: Vec<f32> = layout
@@ -367,12 +372,19 @@ pub fn fitted_field(
             if mass <= 0.0 {
                 return 0.0;
             }
-            let values = quadrature.values(weighted, *v);
-            let sum: f64 = points
+            let rho = quadrature.values(density, *v);
+            let sum = quadrature.values(kept, *v);
+            // The corners a point's V is read over: where the density is above 0 (`stored`).
+            let cover = quadrature.values_of(density, *v, |r| (r > 0.0) as u8 as f32);
+            let total: f64 = points
                 .iter()
-                .map(|&j| (quadrature.tent(j) * values[quadrature.flat(j)].max(0.0)) as f64)
+                .map(|&j| {
+                    // A footprint point has ρ > 0, so a corner above 0 and cover > 0.
+                    let i = quadrature.flat(j);
+                    (quadrature.tent(j) * rho[i] * from_stored(sum[i], cover[i])) as f64
+                })
                 .sum();
-            (sum / mass) as f32
+            (total / mass) as f32
         })
         .collect();
     least_squares(density, layout, &mut means, 1, FIT_REGULARISATION);

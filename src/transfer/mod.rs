@@ -6,7 +6,7 @@ pub mod cache;
 pub(crate) mod coefficients;
 pub use coefficients::Coefficients;
 mod fit;
-pub use fit::fitted_field;
+pub use fit::fitted_visibility;
 pub mod lattice;
 mod layout;
 pub mod memory;

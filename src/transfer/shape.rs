@@ -11,7 +11,7 @@
 //! from 14.3 to 12.3 %, but drew stripes along the density's voxel layers across the cloud's lit
 //! lobes that the path tracer does not have, and put two bake seeds 2.6 % apart instead of 0.5 %.
 
-use super::fit::fitted_field;
+use super::fit::fitted_visibility;
 use super::memory::visibility_resolution;
 use super::TransferLayout;
 use crate::volume::visibility::{Resolution, Visibility};
@@ -38,7 +38,7 @@ impl TransferShape {
         resolution: Resolution,
     ) -> TransferShape {
         let visibility = Visibility::build(field, sigma_t, resolution);
-        let fitted = fitted_field(&field.grid, layout, &visibility.fine_weighted(&field.grid));
+        let fitted = fitted_visibility(&field.grid, layout, &visibility.fine_weighted(&field.grid));
         TransferShape { visibility, fitted }
     }
 

@@ -243,24 +243,54 @@ impl<'a> BrickSampler<'a> {
     #[inline(always)]
     pub fn sample(&mut self, p: Vec3) -> f32 {
         let (i0, f) = floor_split(p);
+        match self.entry_of(i0) {
+            Some(Entry::Brick(b)) => trilinear(self.brick_corners(b, i0), f),
+            Some(Entry::Uniform(v)) => v,
+            None => self.sample_fallback(p),
+        }
+    }
+
+    /// The trilinear blends at `p` of the values and of which of them are above 0:
+    /// (Σ w·v, Σ w·[v > 0]). A grid that holds a quantity as a value above 0 where it is defined,
+    /// and 0 elsewhere, is interpolated over the corners that hold it alone as the first over the
+    /// second, read from the same eight loads.
+    #[inline]
+    pub fn sample_covered(&mut self, p: Vec3) -> (f32, f32) {
+        let (i0, f) = floor_split(p);
+        let c = match self.entry_of(i0) {
+            Some(Entry::Brick(b)) => self.brick_corners(b, i0),
+            Some(Entry::Uniform(v)) => [v; 8],
+            None => {
+                let (c, _) = self.fallback.corners(p);
+                c
+            }
+        };
+        (
+            trilinear(c, f),
+            trilinear(c.map(|v| (v > 0.0) as u8 as f32), f),
+        )
+    }
+
+    /// The entry of the block holding voxel `i0`, through the cache of the last one.
+    #[inline(always)]
+    fn entry_of(&mut self, i0: IVec3) -> Option<Entry> {
         let key = i0 >> LEAF_LOG2;
         if key != self.key {
             self.key = key;
             self.entry = self.bricks.entries.get(&key).copied();
         }
-        match self.entry {
-            Some(Entry::Brick(b)) => {
-                let brick = &self.bricks.values[b as usize];
-                let l = (i0 & (LEAF_DIM - 1)).as_uvec3();
-                let base = (l.x as usize * BRICK_DIM + l.y as usize) * BRICK_DIM + l.z as usize;
-                // One bounds check for the cell's whole reach instead of one per corner.
-                let cell = &brick[base..base + CELL_REACH];
-                let c: [f32; 8] = std::array::from_fn(|n| cell[CORNER_OFFSETS[n]]);
-                trilinear(c, f)
-            }
-            Some(Entry::Uniform(v)) => v,
-            None => self.sample_fallback(p),
-        }
+        self.entry
+    }
+
+    /// The eight values of brick `b` a sample with lower corner `i0` blends ([`corner`] order).
+    #[inline(always)]
+    fn brick_corners(&self, b: u32, i0: IVec3) -> [f32; 8] {
+        let brick = &self.bricks.values[b as usize];
+        let l = (i0 & (LEAF_DIM - 1)).as_uvec3();
+        let base = (l.x as usize * BRICK_DIM + l.y as usize) * BRICK_DIM + l.z as usize;
+        // One bounds check for the cell's whole reach instead of one per corner.
+        let cell = &brick[base..base + CELL_REACH];
+        std::array::from_fn(|n| cell[CORNER_OFFSETS[n]])
     }
 
     /// The density at the voxels `lo + [0, dim)` into `out`, x-major (z fastest): a sample at a

@@ -47,6 +47,13 @@ impl<'a> BlockSampler<'a> {
     /// Trilinear density at an index-space point, exactly as [`SparseGrid::sample_index`].
     #[inline]
     pub fn sample(&mut self, p: Vec3) -> f32 {
+        let (c, f) = self.corners(p);
+        trilinear(c, f)
+    }
+
+    /// The eight values a trilinear sample at `p` blends ([`corner`] order) and its fractions.
+    #[inline]
+    pub fn corners(&mut self, p: Vec3) -> ([f32; 8], Vec3) {
         let (i0, f) = floor_split(p);
         let key = i0 >> LEAF_LOG2;
         if key != self.base {
@@ -58,7 +65,8 @@ impl<'a> BlockSampler<'a> {
         if local.max_element() < LEAF_DIM - 1 {
             match self.block(IVec3::ZERO) {
                 Block::Leaf(leaf) => c = leaf.values.gather(Leaf::slot(i0), &LEAF_CORNERS),
-                Block::Constant(v) => return v,
+                // Trilinear of eight equal values is that value exactly.
+                Block::Constant(v) => c = [v; 8],
             }
         } else {
             for (n, v) in c.iter_mut().enumerate() {
@@ -69,7 +77,7 @@ impl<'a> BlockSampler<'a> {
                 };
             }
         }
-        trilinear(c, f)
+        (c, f)
     }
 }
 

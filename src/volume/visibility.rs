@@ -9,10 +9,16 @@
 //! deterministic (no Monte Carlo noise to become texture). It is swept and kept at a
 //! [`Resolution`]: the density itself, or its 2× box mean ([`crate::volume::mip`]).
 //!
-//! It is kept as ρ·V on the topology of the density it was swept through: sampled trilinearly and
-//! divided by that density's trilinear ρ, it is V interpolated with density weights, so empty
-//! voxels beside a surface (where V is not defined) take no part. Its values, V one per active
-//! voxel in [`Visibility::values`]' order, are what a cache stores.
+//! It is kept as D = −ln V on the topology of the density it was swept through, and read as
+//! V = e^{−D} with D interpolated trilinearly over the corners where the density is above 0: empty
+//! voxels beside a surface, where V was not swept, take no part. Under a lit surface V falls by a
+//! near-constant factor per voxel, a straight line in D; a corner's weight is its trilinear
+//! weight alone: read as ρ·V over ρ, V would lean toward the denser corner between two layers
+//! and bulge above the exponential fall, once per voxel layer, which draws stripes one voxel
+//! apart across a cloud's lit lobes. The grid holds 1 + D where the density is above 0 and 0 elsewhere
+//! ([`stored`]), so which corners hold a value comes from the same eight loads
+//! ([`BrickSampler::sample_covered`]). Its values, V one per active voxel in
+//! [`Visibility::values`]' order, are what a cache stores.
 
 use std::borrow::Cow;
 
@@ -55,7 +61,7 @@ pub struct Visibility {
     /// V at every active voxel (and every large tile's centre) of the level's density, in the
     /// order of [`units`]: what a cache stores.
     values: Vec<f16>,
-    /// ρ·V on the level's topology, and its bricks.
+    /// The kept grid ([`stored`]) on the level's topology, and its bricks.
     weighted: SparseGrid,
     bricks: Bricks,
     /// The level's density (`None` at level 0, where a ray's own density divides).
@@ -81,8 +87,32 @@ impl VisibilitySampler<'_> {
             }
             None => (p, rho),
         };
-        (rho > 0.0).then(|| self.weighted.sample(q) / rho)
+        let (sum, cover) = self.weighted.sample_covered(q);
+        (rho > 0.0 && cover > 0.0).then(|| from_stored(sum, cover))
     }
+}
+
+/// The largest D = −ln V kept: a cache holds V as f16, whose smallest value above 0 is
+/// 6·10⁻⁸ = e^{−16.6}; V = 0 (no direction sees out) is kept as e^{−16}, far below anything the
+/// shaping reads ([`crate::render::march`] ignores a fitted V under 10⁻⁴).
+const MAX_DEPTH: f32 = 16.0;
+
+/// What the kept grid holds at a voxel of density `rho` whose visibility is `v`: 1 + D, D = −ln V
+/// bounded by [`MAX_DEPTH`], where the density is above 0, else 0 (module doc).
+pub(crate) fn stored(rho: f32, v: f32) -> f32 {
+    if rho <= 0.0 {
+        return 0.0;
+    }
+    1.0 + match v > 0.0 {
+        true => (-v.ln()).clamp(0.0, MAX_DEPTH),
+        false => MAX_DEPTH,
+    }
+}
+
+/// V from the blends of a kept grid at a point ([`BrickSampler::sample_covered`]): the mean of
+/// 1 + D over the corners that hold it, `cover` > 0.
+pub(crate) fn from_stored(sum: f32, cover: f32) -> f32 {
+    (1.0 - sum / cover).exp()
 }
 
 /// Where V is kept: the voxels of a leaf or of an 8³ tile (an 8³ tile often lies under a surface,
@@ -169,7 +199,7 @@ fn points(units: &[Unit]) -> Vec<IVec3> {
     units.iter().flat_map(Unit::points).collect()
 }
 
-/// ρ·V on `grid`'s topology from V in the order of `units`.
+/// The kept grid ([`stored`]) on `grid`'s topology from V in the order of `units`.
 fn assemble(grid: &SparseGrid, units: &[Unit], values: &[f32]) -> SparseGrid {
     let starts: Vec<usize> = units
         .iter()
@@ -192,7 +222,7 @@ fn assemble(grid: &SparseGrid, units: &[Unit], values: &[f32]) -> SparseGrid {
                         Block::Leaf(leaf) => leaf.values.get(slot),
                         Block::Constant(v) => v,
                     };
-                    weighted[slot] = rho.max(0.0) * next.next().copied().unwrap_or(0.0);
+                    weighted[slot] = stored(rho, next.next().copied().unwrap_or(0.0));
                 }
                 Some((origin, mask, weighted))
             }
@@ -206,7 +236,7 @@ fn assemble(grid: &SparseGrid, units: &[Unit], values: &[f32]) -> SparseGrid {
     }
     for (unit, &start) in units.iter().zip(&starts) {
         if let Unit::Tile { level, origin } = *unit {
-            out.insert_tile(level, origin, grid.value(origin).max(0.0) * values[start]);
+            out.insert_tile(level, origin, stored(grid.value(origin), values[start]));
         }
     }
     out
@@ -294,8 +324,8 @@ impl Visibility {
         }
     }
 
-    /// ρ·V on the topology of the density `fine`, V sampled at each of its voxels as a ray
-    /// samples it: what the fit of V reads.
+    /// The kept grid ([`stored`]) on the topology of the density `fine`, V sampled at each of its
+    /// voxels as a ray samples it: what the fit of V reads.
     pub fn fine_weighted(&self, fine: &SparseGrid) -> Cow<'_, SparseGrid> {
         if self.coarse.is_none() {
             return Cow::Borrowed(&self.weighted);
@@ -382,12 +412,41 @@ mod tests {
             IVec3::splat(31),
         ] {
             let want = cube_visibility(p.as_vec3(), 32.0, sigma_t);
-            // ρ = 1, so the stored ρ·V is V.
-            let got = v.weighted.value(p);
+            let got = v.sampler().at(p.as_vec3(), 1.0).unwrap();
             assert!((got - want).abs() < 0.02 * want, "{p}: {got} vs {want}");
         }
-        // Outside the medium nothing is stored: ρ·V is 0 there.
+        // Outside the medium nothing is stored.
         assert_eq!(v.weighted.value(IVec3::splat(40)), 0.0);
+    }
+
+    #[test]
+    fn between_voxel_layers_under_a_lit_face_v_follows_its_fall() {
+        // A slab 4 voxels thick (x) whose outer layer is thin, ramping up to full density, as a
+        // cloud's surface does, at one optical depth per voxel: V falls by a near-constant factor
+        // per layer, and halfway between two layers it is the geometric mean of theirs, where a
+        // blend weighted by density would lean toward the denser, darker layer.
+        let mut grid = SparseGrid::new(Transform::default(), 0.0);
+        let mut values = [0.0; LEAF_VOXELS];
+        for (slot, v) in values.iter_mut().enumerate() {
+            let x = slot_offset(slot).x;
+            *v = [0.1, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0][x as usize];
+        }
+        for (y, z) in [(0, 0), (0, 8), (8, 0), (8, 8)] {
+            grid.insert_leaf(IVec3::new(0, y, z), [u64::MAX; 8], values);
+        }
+        let v = Visibility::build(&DensityField::new(grid), 1.0, Resolution::FINE);
+        let mut sampler = v.sampler();
+        let at = |sampler: &mut VisibilitySampler, x: f32, rho: f32| {
+            sampler.at(Vec3::new(x, 8.0, 8.0), rho).unwrap()
+        };
+        let (v0, v1) = (at(&mut sampler, 0.0, 0.1), at(&mut sampler, 1.0, 1.0));
+        let half = at(&mut sampler, 0.5, 0.55);
+        let geometric = (v0 * v1).sqrt();
+        assert!(v1 < 0.8 * v0, "{v0} {v1}");
+        assert!(
+            (half - geometric).abs() < 1e-3 * geometric,
+            "{half} vs {geometric}"
+        );
     }
 
     /// The visibility of one tile at the origin.
@@ -408,7 +467,7 @@ mod tests {
             (IVec3::new(7, 2, 5), 0.02),
         ] {
             let want = cube_visibility(p.as_vec3(), 8.0, 0.3);
-            let got = v.weighted.value(p);
+            let got = v.sampler().at(p.as_vec3(), 1.0).unwrap();
             assert!(
                 (got - want).abs() < tolerance * want,
                 "{p}: {got} vs {want}"
@@ -419,9 +478,9 @@ mod tests {
     #[test]
     fn a_large_tile_takes_the_visibility_of_its_centre() {
         let v = of_tile(TileLevel::Node, 0.5, 0.04);
-        // Density 0.5 at σt 0.04 is the unit cube of 128 at σt 0.02; the tile stores ρ·V.
-        let want = 0.5 * cube_visibility(Vec3::splat(64.0), 128.0, 0.02);
-        let got = v.weighted.value(IVec3::new(5, 100, 17));
+        // Density 0.5 at σt 0.04 is the unit cube of 128 at σt 0.02; the tile holds one V.
+        let want = cube_visibility(Vec3::splat(64.0), 128.0, 0.02);
+        let got = v.sampler().at(Vec3::new(5.0, 100.0, 17.0), 0.5).unwrap();
         assert!((got - want).abs() < 0.02 * want, "{got} vs {want}");
     }
 
