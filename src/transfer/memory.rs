@@ -75,11 +75,13 @@ impl MemoryEstimate {
         let one = n * c * 4;
         // What each phase holds beyond the density and the layout (`transfer::bake`):
         // - T_ri's passes: the direction sets' SH weights and the far field's coarser density,
-        //   beside F_ms (the point values) and then T_ri too;
+        //   beside F_ms (the point values) and then T_ri too, and a single-scattering bake's
+        //   visibility, which draws the footprint means' starts;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
-        let single = 2 * one + sets + far;
+        let single = 2 * one + sets + far + visibility.held;
         // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
-        let fit = 2 * one + n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
+        let rows = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
+        let fit = 2 * one + rows + visibility.held;
         // - the lattice, beside F_ms alone: its links, with their places while they are built,
         //   and then the transport's state, the bricks released.
         let lattice = match settings.single_scatter {
@@ -98,10 +100,9 @@ impl MemoryEstimate {
                 one + far + build.max(transport)
             }
         };
-        // - the visibility, beside both: its sweep, then the visibility built and its fit (rows
-        //   and solves as above).
-        let rows = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
-        let shape = 2 * one
+        // - the visibility, before T_ri's footprint pass, beside F_ms: its sweep, then the
+        //   visibility built and its fit (rows and solves as above).
+        let shape = one
             + visibility
                 .sweep
                 .max(visibility.held + visibility.fit + rows);

@@ -154,7 +154,7 @@ pub fn bake(
     let mip = DensityMip::build(&field.grid, levels);
     stats.far_field_bytes = mip.memory_bytes();
     let chord_step = single::chord_step(&field.grid, medium.sigma_t);
-    let single = |field: &DensityField, origins, bar: &indicatif::ProgressBar| {
+    let single = |field: &DensityField, origins, visibility, bar: &indicatif::ProgressBar| {
         let far = FarField { mip: &mip, near };
         let depth = OpticalDepth::new(field, medium.sigma_t, true).with_far_field(far);
         let single = single::SingleSettings {
@@ -164,13 +164,13 @@ pub fn bake(
             origins,
             chord_step,
         };
-        single::bake_single(&field.grid, &layout, &depth, single, bar)
+        single::bake_single(&field.grid, &layout, &depth, single, visibility, bar)
     };
     let mut f_ms = match settings.single_scatter {
         true => vec![0.0; n * coeffs],
         false => {
             let bar = progress.phase("single", n as u64);
-            let mut point = single(field, single::Origins::Node, &bar);
+            let mut point = single(field, single::Origins::Node, None, &bar);
             bar.finish_and_clear();
             stats.single_seconds = clock.elapsed().as_secs_f64();
 
@@ -191,9 +191,22 @@ pub fn bake(
         }
     };
 
+    // A single-scattering transfer's direct light is shaped by the density's visibility
+    // (`shape`), which also draws where its footprint means start; a transfer with multiple
+    // scattering is not shaped.
+    let shape = settings.single_scatter.then(|| {
+        let clock = std::time::Instant::now();
+        progress.phase("visibility", 0);
+        let resolution = shape::TransferShape::resolution(field);
+        let shape = shape::TransferShape::build(field, &layout, medium.sigma_t, resolution);
+        stats.visibility_seconds = clock.elapsed().as_secs_f64();
+        stats.visibility_bytes = shape.memory_bytes();
+        std::sync::Arc::new(shape)
+    });
     let clock = std::time::Instant::now();
     let bar = progress.phase("fit", n as u64);
-    let mut t_ri = single(field, single::Origins::Footprint, &bar);
+    let visibility = shape.as_ref().map(|s| &s.visibility);
+    let mut t_ri = single(field, single::Origins::Footprint, visibility, &bar);
     drop(mip);
     fit::least_squares(
         &field.grid,
@@ -210,17 +223,6 @@ pub fn bake(
     }
     stats.single_seconds += clock.elapsed().as_secs_f64();
 
-    // A single-scattering transfer's direct light is shaped by the density's visibility
-    // (`shape`); a transfer with multiple scattering is not.
-    let shape = settings.single_scatter.then(|| {
-        let clock = std::time::Instant::now();
-        progress.phase("visibility", 0);
-        let resolution = shape::TransferShape::resolution(field);
-        let shape = shape::TransferShape::build(field, &layout, medium.sigma_t, resolution);
-        stats.visibility_seconds = clock.elapsed().as_secs_f64();
-        stats.visibility_bytes = shape.memory_bytes();
-        std::sync::Arc::new(shape)
-    });
     let transfer = Transfer {
         layout,
         bands: settings.bands,

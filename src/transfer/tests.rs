@@ -263,6 +263,7 @@ fn t_ri_agrees_with_a_brute_force_reference() {
         &layout,
         &OpticalDepth::new(&f, medium.sigma_t, true),
         single,
+        None,
         &indicatif::ProgressBar::hidden(),
     );
     let plain = OpticalDepth::new(&f, medium.sigma_t, false);
@@ -315,7 +316,14 @@ fn empty_space_skipping_changes_no_result() {
             chord_step: 1.0,
         };
         let depth = OpticalDepth::new(&f, medium.sigma_t, skip_empty);
-        bake_single(&d, &layout, &depth, s, &indicatif::ProgressBar::hidden())
+        bake_single(
+            &d,
+            &layout,
+            &depth,
+            s,
+            None,
+            &indicatif::ProgressBar::hidden(),
+        )
     };
     let (a, b) = (run(true), run(false));
     assert_eq!(a, b);
@@ -414,6 +422,7 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
             origins: Origins::Node,
             chord_step: 1.0,
         },
+        None,
         &indicatif::ProgressBar::hidden(),
     );
     let t_ri = t.coefficients().unwrap().0.to_f32(t.coeffs());
@@ -433,5 +442,60 @@ fn fitted_t_ri_solves_the_least_squares_problem_of_the_brute_force_transmittance
     assert!(
         point_mean > 0.03,
         "point values: mean residual {point_mean}"
+    );
+}
+
+#[test]
+fn footprint_means_drawn_by_visibility_keep_their_value_with_less_noise() {
+    // The torus at one optical depth per voxel: most of a surface node's footprint sees no light,
+    // and starts drawn by ρ·w alone leave its mean to the few that land near the lit face. Drawn
+    // by ρ·w·V, the estimate must keep the means (no bias against a 16× larger plain run) and
+    // scatter less around them.
+    use crate::volume::visibility::{Resolution, Visibility};
+    let d = load("torus.vdb");
+    let f = DensityField::new(d.clone());
+    let sigma_t = 1.0;
+    let layout = TransferLayout::build(&d, 6);
+    let depth = OpticalDepth::new(&f, sigma_t, true);
+    let visibility = Visibility::build(&f, sigma_t, Resolution::FINE);
+    let bands = 3;
+    let coeffs = bands * bands;
+    let t_ri = |samples: usize, seed: u64, visibility: Option<&Visibility>| -> Vec<f64> {
+        let s = SingleSettings {
+            bands,
+            samples,
+            seed,
+            origins: Origins::Footprint,
+            chord_step: 1.0,
+        };
+        let hidden = indicatif::ProgressBar::hidden();
+        bake_single(&d, &layout, &depth, s, visibility, &hidden)
+            .into_iter()
+            .map(f64::from)
+            .collect()
+    };
+    let reference = t_ri(2048, 1, None);
+    // The RMS error of every coefficient over the nodes and the bias of the DC terms' sum, both
+    // relative to the reference's mean DC term.
+    let measure = |t: &[f64]| {
+        let dc = |t: &[f64]| t.iter().step_by(coeffs).sum::<f64>();
+        let n = (t.len() / coeffs) as f64;
+        let scale = dc(&reference) / n;
+        let sq: f64 = t.iter().zip(&reference).map(|(a, b)| (a - b).powi(2)).sum();
+        (
+            (sq / n).sqrt() / scale,
+            (dc(t) - dc(&reference)) / (n * scale),
+        )
+    };
+    let plain = measure(&t_ri(128, 2, None));
+    let drawn = measure(&t_ri(128, 2, Some(&visibility)));
+    // Measured: 6.4 % against 8.4 %, biases −0.27 % and −0.02 %.
+    assert!(
+        drawn.0 < 0.85 * plain.0,
+        "error: by V {drawn:?}, plain {plain:?}"
+    );
+    assert!(
+        drawn.1.abs() < 0.01,
+        "bias: by V {drawn:?}, plain {plain:?}"
     );
 }

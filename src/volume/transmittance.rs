@@ -126,8 +126,10 @@ impl<'a> OpticalDepth<'a> {
     }
 
     /// The mean transmittance toward world direction `dir` (unit) along the chord of the index box
-    /// `[lo, hi]` through index point `origin`, weighted by ρ·`weight`:
-    /// ∫ ρ·w·T ds / ∫ ρ·w ds over the chord, `None` where the chord holds no weight.
+    /// `[lo, hi]` through index point `origin`, weighted by ρ·w: ∫ ρ·w·T ds / ∫ ρ·w·g ds over the
+    /// chord, where `weight` gives (w, g) at a point of density ρ — g ≡ 1 for the plain mean, or
+    /// the density that drew the chord's start over ρ·w (an importance estimate); `None` where
+    /// the chord holds no weight.
     ///
     /// One ray from where the chord leaves the box toward `dir` gives the transmittance of
     /// everything beyond it; the chord is then walked back from there, one midpoint sample per
@@ -140,7 +142,7 @@ impl<'a> OpticalDepth<'a> {
         dir: Vec3,
         (lo, hi): (Vec3, Vec3),
         step_voxels: f32,
-        weight: impl Fn(Vec3) -> f32,
+        mut weight: impl FnMut(Vec3, f32) -> (f32, f32),
     ) -> Option<f32> {
         let v = dir * self.inv_scale;
         let (mut enter, mut exit) = (f32::NEG_INFINITY, f32::INFINITY);
@@ -169,7 +171,8 @@ impl<'a> OpticalDepth<'a> {
             if rho <= 0.0 {
                 continue;
             }
-            let w = rho * weight(p);
+            let (w, g) = weight(p, rho);
+            let w = rho * w;
             // T averaged over the step exactly for the density of its midpoint: at an optical
             // depth per step near one, T at the midpoint alone is 1–2 % low.
             let delta = self.sigma_t * rho * step;
@@ -179,7 +182,7 @@ impl<'a> OpticalDepth<'a> {
                 false => 1.0 - 0.5 * delta,
             };
             weighted += w * t * mean;
-            total += w;
+            total += w * g;
             t *= across;
         }
         (total > 0.0).then(|| beyond * weighted / total)
@@ -402,13 +405,18 @@ mod tests {
         let d = OpticalDepth::new(&field, sigma, true);
         let box_ = (Vec3::new(150.0, 50.0, 50.0), Vec3::new(170.0, 80.0, 80.0));
         let mean = d
-            .chord_mean(Vec3::new(163.2, 64.0, 64.0), Vec3::X, box_, 1.0, |_| 1.0)
+            .chord_mean(Vec3::new(163.2, 64.0, 64.0), Vec3::X, box_, 1.0, |_, _| {
+                (1.0, 1.0)
+            })
             .unwrap();
         let want = (-sigma * 85.5).exp() * (1.0 - (-20.0 * sigma).exp()) / (20.0 * sigma);
         assert!((mean / want - 1.0).abs() < 1e-3, "{mean} vs {want}");
         // A chord that misses the box holds nothing.
         let outside = Vec3::new(163.2, 90.0, 64.0);
-        assert_eq!(d.chord_mean(outside, Vec3::X, box_, 1.0, |_| 1.0), None);
+        assert_eq!(
+            d.chord_mean(outside, Vec3::X, box_, 1.0, |_, _| (1.0, 1.0)),
+            None
+        );
     }
 
     #[test]
@@ -430,7 +438,9 @@ mod tests {
         let dir = Vec3::new(-0.9, 0.3, -0.2).normalize();
         let origin = Vec3::new(131.0, 63.0, 65.0);
         let mean = d
-            .chord_mean(origin, dir, (lo, hi), 1.0, |q| tent(q.as_dvec3()) as f32)
+            .chord_mean(origin, dir, (lo, hi), 1.0, |q, _| {
+                (tent(q.as_dvec3()) as f32, 1.0)
+            })
             .unwrap();
         let rho = |x: f64| (x - 127.0).clamp(0.0, 1.0);
         let integral = |x: f64| match x {
