@@ -281,7 +281,7 @@ pub struct Starts {
 /// ∫ρ·w_n·g, so ∫ρ·w_n·T / ∫ρ·w_n·g over it, times [`Starts::mean_importance`], estimates t̄_n
 /// without bias. Drawn by ρ·w_n alone, a thick footprint's rays mostly start where no light
 /// reaches and the few near its lit face carry the whole mean: two bake seeds of the cloud at
-/// σt 1 under the studio map were 16 % apart in the `--single-scatter` image; drawn by V, 6 %
+/// σt 1 under the studio map are then 16 % apart in the `--single-scatter` image; drawn by V, 6 %
 /// ([docs/accuracy.md](../../docs/accuracy.md#soft-light-the-fit)). `None` when the footprint
 /// holds no density.
 ///

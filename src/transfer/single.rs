@@ -213,9 +213,9 @@ pub fn bake_single(
                     let footprint = (x - k as f32, x + k as f32);
                     for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts.points) {
                         // g read at q itself, as ρ and w are. A start is drawn uniformly
-                        // within its quadrature point's cell with that point's g, and reading g
-                        // there too took the footprint means' DC closer to a plain run's (−0.3
-                        // against −0.9 % on the torus at σt 1) but the images 1.5–3 points
+                        // within its quadrature point's cell with that point's g; reading g
+                        // there too brings the footprint means' DC closer to a plain run's (−0.3
+                        // against −0.9 % on the torus at σt 1) but puts the images 1.5–3 points
                         // darker against the path tracer (studio, σt 0.36–1).
                         let weight = |q: Vec3, rho: f32| {
                             let g = visibility
