@@ -217,18 +217,21 @@ pub fn bake_single(
                         // there too brings the footprint means' DC closer to a plain run's (−0.3
                         // against −0.9 % on the torus at σt 1) but puts the images 1.5–3 points
                         // darker against the path tracer (studio, σt 0.36–1).
-                        let weight = |q: Vec3, rho: f32| {
-                            let g = visibility
-                                .as_mut()
-                                .map_or(1.0, |s| super::fit::importance(s, q, rho));
-                            (super::fit::tent(q - x, k), g)
+                        let tent = |q: Vec3| super::fit::tent(q - x, k);
+                        let step = settings.chord_step;
+                        // Two instances, so a bake without a visibility folds g = 1 away.
+                        let mean = match visibility.as_mut() {
+                            None => {
+                                depth.chord_mean(*p, *d, footprint, step, |q, _| (tent(q), 1.0))
+                            }
+                            Some(s) => depth.chord_mean(*p, *d, footprint, step, |q, rho| {
+                                (tent(q), super::fit::importance(s, q, rho))
+                            }),
                         };
-                        *t = depth
-                            .chord_mean(*p, *d, footprint, settings.chord_step, weight)
-                            .map_or_else(
-                                || depth.transmittance(*p, *d),
-                                |m| m * starts.mean_importance,
-                            );
+                        *t = mean.map_or_else(
+                            || depth.transmittance(*p, *d),
+                            |m| m * starts.mean_importance,
+                        );
                     }
                 }
             }

@@ -243,7 +243,8 @@ impl<'a> BrickSampler<'a> {
     #[inline(always)]
     pub fn sample(&mut self, p: Vec3) -> f32 {
         let (i0, f) = floor_split(p);
-        match self.entry_of(i0) {
+        self.look_up(i0);
+        match self.entry {
             Some(Entry::Brick(b)) => trilinear(self.brick_corners(b, i0), f),
             Some(Entry::Uniform(v)) => v,
             None => self.sample_fallback(p),
@@ -257,7 +258,8 @@ impl<'a> BrickSampler<'a> {
     #[inline]
     pub fn sample_covered(&mut self, p: Vec3) -> (f32, f32) {
         let (i0, f) = floor_split(p);
-        let c = match self.entry_of(i0) {
+        self.look_up(i0);
+        let c = match self.entry {
             Some(Entry::Brick(b)) => self.brick_corners(b, i0),
             Some(Entry::Uniform(v)) => [v; 8],
             None => {
@@ -271,15 +273,14 @@ impl<'a> BrickSampler<'a> {
         )
     }
 
-    /// The entry of the block holding voxel `i0`, through the cache of the last one.
+    /// Makes `entry` that of the block holding voxel `i0`, looked up only when the block changes.
     #[inline(always)]
-    fn entry_of(&mut self, i0: IVec3) -> Option<Entry> {
+    fn look_up(&mut self, i0: IVec3) {
         let key = i0 >> LEAF_LOG2;
         if key != self.key {
             self.key = key;
             self.entry = self.bricks.entries.get(&key).copied();
         }
-        self.entry
     }
 
     /// The eight values of brick `b` a sample with lower corner `i0` blends ([`corner`] order).
