@@ -7,6 +7,7 @@ use clap::Parser;
 mod app;
 
 fn main() -> ExitCode {
+    end_quietly_on_a_closed_pipe();
     vscatter::io::meminfo::return_large_blocks_when_freed();
     let cli = match app::Cli::try_parse() {
         Ok(cli) => cli,
@@ -37,5 +38,17 @@ fn main() -> ExitCode {
             eprintln!("vscatter: error: {e}");
             ExitCode::from(e.exit_code())
         }
+    }
+}
+
+/// Restores SIGPIPE's default action, which Rust's runtime ignores: `vscatter info x.vdb | head -1`
+/// then ends when `head` stops reading, silently, as `cat` or `grep` would, where `println!` into
+/// the closed pipe panicked. Nothing is lost: the commands print to stdout only once their files
+/// are written, or write none.
+fn end_quietly_on_a_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: sets a signal's disposition to its default; called before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }

@@ -228,3 +228,27 @@ fn a_format_222_file_reads_as_its_224_original() {
     assert_eq!(library, Some("3.2".into()));
     assert_eq!(grids, grids_224);
 }
+
+#[test]
+fn output_into_a_closed_pipe_ends_quietly() {
+    // A pipe whose read end is closed before vscatter starts, as when `vscatter info x.vdb | head`
+    // stops reading: the first line written meets a broken pipe, and the process ends as a Unix
+    // tool does, by SIGPIPE, with nothing on stderr (no panic from println!).
+    let (reader, writer) = std::io::pipe().expect("a pipe");
+    drop(reader);
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_vscatter"))
+        .args(["info", fixture("cloud.vdb").to_str().unwrap()])
+        .stdout(writer)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the vscatter binary runs");
+    let out = child.wait_with_output().expect("it ends");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.is_empty(), "stderr: {err}");
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::ExitStatusExt;
+        // 13: SIGPIPE on every Unix.
+        assert_eq!(out.status.signal(), Some(13), "status {:?}", out.status);
+    }
+}
