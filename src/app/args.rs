@@ -362,10 +362,11 @@ pub struct RenderArgs {
     /// Camera position (default: framing the volume from +Z).
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
     pub camera_pos: Option<[f32; 3]>,
-    /// Point the camera looks at (default: the centre of the volume).
+    /// Point the camera looks at (default: the centre of the volume); without --camera-pos the
+    /// framing camera turns toward it.
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
     pub lookat: Option<[f32; 3]>,
-    /// The camera's up direction.
+    /// The camera's up direction (with or without --camera-pos).
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true,
           default_value = "0,1,0")]
     pub up: [f32; 3],

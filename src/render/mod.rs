@@ -54,7 +54,22 @@ impl CameraSpec {
                 self.width,
                 self.height,
             ),
-            None => Camera::framing(lo, hi, self.width, self.height, self.fov_deg),
+            // Framed from +Z; a look-at point or an up direction given without a position turns
+            // the framing camera where it stands.
+            None => {
+                let framed = Camera::framing(lo, hi, self.width, self.height, self.fov_deg)?;
+                if self.lookat.is_none() && self.up == Vec3::Y {
+                    return Ok(framed);
+                }
+                Camera::look_at(
+                    framed.position,
+                    self.lookat.unwrap_or(0.5 * (lo + hi)),
+                    self.up,
+                    self.fov_deg,
+                    self.width,
+                    self.height,
+                )
+            }
         }
     }
 }

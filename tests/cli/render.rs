@@ -117,8 +117,14 @@ fn render_refuses_bad_flags_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let input = fixture("small_cloud.vdb");
     let input = input.to_str().unwrap();
-    let cases: [(&[&str], i32, &str); 6] = [
+    let cases: [(&[&str], i32, &str); 7] = [
         (&["render", input, "-o", "x.png", "--spp", "0"], 2, "--spp"),
+        // Without --camera-pos too: the framing camera looks down −Z.
+        (
+            &["render", input, "-o", "x.png", "--up", "0,0,1"],
+            2,
+            "--up",
+        ),
         (&["render", input, "-o", "x.tif"], 2, "x.tif"),
         (
             &["render", input, "-o", "x.png", "--albedo", "1.5"],
@@ -423,4 +429,25 @@ fn automatic_framing_fills_the_frame_with_the_smoke() {
         "the smoke covers {covered} of {} pixels",
         alpha.len()
     );
+}
+
+#[test]
+fn the_framing_camera_turns_to_a_lookat_and_rolls_to_an_up() {
+    // Without --camera-pos the camera frames the volume from +Z; --lookat and --up, given alone,
+    // turn it where it stands rather than go unheard.
+    let dir = tempfile::tempdir().unwrap();
+    let input = fixture("small_cloud.vdb");
+    let input = input.to_str().unwrap();
+    let render = |name: &str, extra: &[&str]| {
+        let mut args = vec!["render", input, "-o", name, "--res", "32x18", "--quiet"];
+        args.extend(QUICK_BAKE);
+        args.extend(extra);
+        let out = vscatter_in(dir.path(), &args);
+        assert!(out.status.success(), "{}", stderr(&out));
+        read_rgb(&dir.path().join(name))
+    };
+    let plain = render("plain.exr", &[]);
+    assert_eq!(plain, render("default_up.exr", &["--up", "0,1,0"]));
+    assert_ne!(plain, render("rolled.exr", &["--up", "1,0,0"]));
+    assert_ne!(plain, render("turned.exr", &["--lookat", "2,0,0"]));
 }
