@@ -139,6 +139,11 @@ fn damaged_files_are_clear_errors() {
         let name = path.file_name().unwrap().to_str().unwrap();
         assert_clean_failure(&out, 1, name);
     }
+    // A directory opens as a file does, and its map fails with "No such device".
+    let folder = dir.path().join("folder.vdb");
+    std::fs::create_dir(&folder).unwrap();
+    let out = vscatter(&["info", folder.to_str().unwrap()]);
+    assert_clean_failure(&out, 1, "a directory");
 }
 
 #[test]

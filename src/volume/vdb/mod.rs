@@ -184,7 +184,12 @@ impl VdbFile {
     /// transform. Trees are read on demand by [`VdbFile::read_grid`].
     pub fn open(path: &Path) -> Result<VdbFile> {
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-        let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+        let meta = file.metadata().map_err(|e| Error::io(path, e))?;
+        // A directory opens, and its map fails with "No such device".
+        if meta.is_dir() {
+            return Err(Error::format(path, "a directory, not a VDB file"));
+        }
+        let len = meta.len();
         if len < HEADER_LEN as u64 {
             return Err(Error::format(
                 path,
