@@ -14,7 +14,7 @@ use serde_json::{json, Value};
 use super::args::{GlobalArgs, Method, RenderArgs, SequenceArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
-use vscatter::io::atomic::{check_writable, remove_stale_temporaries};
+use vscatter::io::atomic::{check_not_input, check_writable, remove_stale_temporaries};
 use vscatter::io::image::{read_fingerprint, write_bands, WriteOptions};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress;
@@ -69,6 +69,9 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         }
     }
     if let Some(cache) = &args.cache {
+        for input in &shot.all_inputs {
+            check_not_input(cache, input, "--cache")?;
+        }
         check_writable(cache)?;
     }
 

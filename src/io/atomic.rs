@@ -87,6 +87,18 @@ pub fn check_writable(path: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Refuses an output `path` that names the input file `input` (`what` says which flag gave it):
+/// written atomically, it would replace the input before anyone noticed.
+pub fn check_not_input(path: &Path, input: &Path, what: &str) -> Result<()> {
+    match (fs::canonicalize(path), fs::canonicalize(input)) {
+        (Ok(a), Ok(b)) if a == b => Err(Error::usage(format!(
+            "{what} {}: that is the input file, which it would replace",
+            path.display()
+        ))),
+        _ => Ok(()),
+    }
+}
+
 /// Writes `path` atomically: `write` fills a buffered temporary file (which can also seek, as the
 /// EXR writer needs), then it is flushed, synced and renamed to `path`. On any failure the temporary
 /// file is removed, nothing appears under `path`, and the error names `path`.

@@ -215,3 +215,24 @@ fn a_q8_cache_is_smaller_and_says_what_it_holds() {
     );
     assert!(o.status.success(), "{}", stderr(&o));
 }
+
+#[test]
+fn an_output_that_names_the_input_is_refused_and_the_input_kept() {
+    // Written atomically, a cache or image over the input VDB would replace it: -o and --cache
+    // naming the input (by any path) are refused before anything is read or written.
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.vdb");
+    std::fs::copy(fixture("small_cloud.vdb"), &input).unwrap();
+    let original = std::fs::read(&input).unwrap();
+    let other_path = dir.path().join(".").join("in.vdb");
+    let cases: [&[&str]; 2] = [
+        &["bake", "in.vdb", "-o", other_path.to_str().unwrap()],
+        &["render", "in.vdb", "--cache", "in.vdb", "-o", "x.png"],
+    ];
+    for args in cases {
+        let out = vscatter_in(dir.path(), args);
+        assert_clean_failure(&out, 2, "that is the input file");
+    }
+    assert_eq!(std::fs::read(&input).unwrap(), original);
+    assert!(!dir.path().join("x.png").exists());
+}
