@@ -8,7 +8,7 @@ use std::time::Instant;
 use serde_json::json;
 
 use super::args::{BakeCmd, GlobalArgs};
-use vscatter::io::atomic::{check_not_input, check_writable};
+use vscatter::io::atomic::{check_writable, Inputs};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress::Bars;
 use vscatter::scene::{BakeConfig, Scene};
@@ -18,7 +18,7 @@ use vscatter::Result;
 /// Runs `vscatter bake`.
 pub fn run(cmd: &BakeCmd, global: &GlobalArgs) -> Result<()> {
     let config = cmd.bake.validate()?;
-    check_not_input(&cmd.output, &cmd.input, "-o")?;
+    Inputs::new([cmd.input.as_path()]).check(&cmd.output, "-o")?;
     check_writable(&cmd.output)?;
     let mut scene = Scene::open(&cmd.input, &config)?;
     if scene.transfer.is_some() {

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use super::args::EnvArgs;
 use vscatter::error::{Error, Result};
+use vscatter::io::atomic::Inputs;
 use vscatter::io::image::{ImageBuf, WriteOptions};
 use vscatter::light::env::Environment;
 use vscatter::light::sh;
@@ -14,8 +15,11 @@ pub fn run(args: &EnvArgs) -> Result<()> {
     sh::check_bands(args.bands)?;
     // Refuse a bad output name before the work, not after it.
     check_image_extension(&args.output)?;
+    let inputs = Inputs::new([Path::new(&args.env)]);
+    inputs.check(&args.output, "-o")?;
     if let Some(original) = &args.original {
         check_image_extension(original)?;
+        inputs.check(original, "--original")?;
     }
     let env = Environment::load(&args.env)?;
     let (w, h) = (env.width(), env.height());

@@ -14,7 +14,7 @@ use serde_json::{json, Value};
 use super::args::{GlobalArgs, Method, RenderArgs, SequenceArgs};
 use super::bake::{bake_stats_json, prepare_bake, warn, warn_once_per_run};
 use super::progress::{names, FrameProgress};
-use vscatter::io::atomic::{check_not_input, check_writable, remove_stale_temporaries};
+use vscatter::io::atomic::{check_writable, remove_stale_temporaries, Inputs};
 use vscatter::io::image::{read_fingerprint, write_bands, WriteOptions};
 use vscatter::io::meminfo::peak_memory;
 use vscatter::io::progress;
@@ -34,7 +34,15 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
     let (spp, spec) = args.validate()?;
     let light_options = args.light_options()?;
     let shot = Shot::plan(args)?;
+    // What the render reads: the volumes and the maps (`sky` is none).
+    let inputs = Inputs::new(
+        shot.all_inputs
+            .iter()
+            .map(PathBuf::as_path)
+            .chain(shot.envs.iter().map(Path::new)),
+    );
     for output in shot.outputs.iter().flatten() {
+        inputs.check(output, "-o")?;
         // A sequence's images go to a directory of their own, made as a batch makes its own.
         if let (true, Some(dir)) = (shot.sequence, output.parent()) {
             if !dir.as_os_str().is_empty() {
@@ -69,9 +77,7 @@ pub fn run(args: &RenderArgs, global: &GlobalArgs) -> Result<()> {
         }
     }
     if let Some(cache) = &args.cache {
-        for input in &shot.all_inputs {
-            check_not_input(cache, input, "--cache")?;
-        }
+        inputs.check(cache, "--cache")?;
         check_writable(cache)?;
     }
 

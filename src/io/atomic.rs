@@ -2,6 +2,7 @@
 //! same directory and is renamed over the final name only once it is complete and synced, so a
 //! crash, a kill or a full disk never leaves a half-written file under the final name.
 
+use std::collections::HashSet;
 use std::fs::{self, File};
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -87,15 +88,30 @@ pub fn check_writable(path: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Refuses an output `path` that names the input file `input` (`what` says which flag gave it):
-/// written atomically, it would replace the input before anyone noticed.
-pub fn check_not_input(path: &Path, input: &Path, what: &str) -> Result<()> {
-    match (fs::canonicalize(path), fs::canonicalize(input)) {
-        (Ok(a), Ok(b)) if a == b => Err(Error::usage(format!(
-            "{what} {}: that is the input file, which it would replace",
-            path.display()
-        ))),
-        _ => Ok(()),
+/// The files a command reads, by their canonical paths, so that no output replaces one
+/// ([`Inputs::check`]); paths that do not exist (a keyword such as `sky`) are left out.
+pub struct Inputs(HashSet<PathBuf>);
+
+impl Inputs {
+    pub fn new<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Inputs {
+        Inputs(
+            paths
+                .into_iter()
+                .filter_map(|p| fs::canonicalize(p).ok())
+                .collect(),
+        )
+    }
+
+    /// Refuses an output `path` that names one of the inputs (`what` says which flag gave it):
+    /// written atomically, it would replace that input before anyone noticed.
+    pub fn check(&self, path: &Path, what: &str) -> Result<()> {
+        match fs::canonicalize(path) {
+            Ok(p) if self.0.contains(&p) => Err(Error::usage(format!(
+                "{what} {}: that is an input file, which it would replace",
+                path.display()
+            ))),
+            _ => Ok(()),
+        }
     }
 }
 

@@ -218,21 +218,24 @@ fn a_q8_cache_is_smaller_and_says_what_it_holds() {
 
 #[test]
 fn an_output_that_names_the_input_is_refused_and_the_input_kept() {
-    // Written atomically, a cache or image over the input VDB would replace it: -o and --cache
-    // naming the input (by any path) are refused before anything is read or written.
+    // Written atomically, a cache or image over an input (the VDB, the map) would replace it:
+    // outputs naming one, by any path, are refused before anything is read or written.
     let dir = tempfile::tempdir().unwrap();
-    let input = dir.path().join("in.vdb");
+    let (input, map) = (dir.path().join("in.vdb"), dir.path().join("map.exr"));
     std::fs::copy(fixture("small_cloud.vdb"), &input).unwrap();
-    let original = std::fs::read(&input).unwrap();
+    std::fs::copy(fixture("env/studio.exr"), &map).unwrap();
+    let originals = [&input, &map].map(|p| std::fs::read(p).unwrap());
     let other_path = dir.path().join(".").join("in.vdb");
-    let cases: [&[&str]; 2] = [
+    let cases: [&[&str]; 4] = [
         &["bake", "in.vdb", "-o", other_path.to_str().unwrap()],
         &["render", "in.vdb", "--cache", "in.vdb", "-o", "x.png"],
+        &["render", "in.vdb", "--env", "map.exr", "-o", "map.exr"],
+        &["env", "map.exr", "-o", "map.exr"],
     ];
     for args in cases {
         let out = vscatter_in(dir.path(), args);
-        assert_clean_failure(&out, 2, "that is the input file");
+        assert_clean_failure(&out, 2, "that is an input file");
     }
-    assert_eq!(std::fs::read(&input).unwrap(), original);
+    assert_eq!([&input, &map].map(|p| std::fs::read(p).unwrap()), originals);
     assert!(!dir.path().join("x.png").exists());
 }
