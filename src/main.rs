@@ -43,7 +43,7 @@ fn main() -> ExitCode {
 
 /// Restores SIGPIPE's default action, which Rust's runtime ignores: `vscatter info x.vdb | head -1`
 /// then ends when `head` stops reading, silently, as `cat` or `grep` would, where `println!` into
-/// the closed pipe panicked. Nothing is lost: the commands print to stdout only once their files
+/// a closed pipe would panic. Nothing is lost: the commands print to stdout only once their files
 /// are written, or write none.
 fn end_quietly_on_a_closed_pipe() {
     #[cfg(unix)]
