@@ -54,13 +54,10 @@ impl CameraSpec {
                 self.width,
                 self.height,
             ),
-            // Framed from +Z; a look-at point or an up direction given without a position turns
-            // the framing camera where it stands.
+            // Framed from +Z, then turned where it stands toward the look-at point with the up
+            // direction (by default the framing camera's own: the box's centre and +Y).
             None => {
                 let framed = Camera::framing(lo, hi, self.width, self.height, self.fov_deg)?;
-                if self.lookat.is_none() && self.up == Vec3::Y {
-                    return Ok(framed);
-                }
                 Camera::look_at(
                     framed.position,
                     self.lookat.unwrap_or(0.5 * (lo + hi)),

@@ -38,7 +38,7 @@ impl TransferShape {
         resolution: Resolution,
     ) -> TransferShape {
         let visibility = Visibility::build(field, sigma_t, resolution);
-        let fitted = fitted_visibility(&field.grid, layout, &visibility.fine_weighted(&field.grid));
+        let fitted = fitted_visibility(&field.grid, layout, &visibility.fine_kept(&field.grid));
         TransferShape { visibility, fitted }
     }
 

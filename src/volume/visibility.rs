@@ -62,7 +62,7 @@ pub struct Visibility {
     /// order of [`units`]: what a cache stores.
     values: Vec<f16>,
     /// The kept grid ([`stored`]) on the level's topology, and its bricks.
-    weighted: SparseGrid,
+    kept: SparseGrid,
     bricks: Bricks,
     /// The level's density (`None` at level 0, where a ray's own density divides).
     coarse: Option<DensityField>,
@@ -71,7 +71,7 @@ pub struct Visibility {
 /// Samples V for one ray.
 pub struct VisibilitySampler<'a> {
     level: usize,
-    weighted: BrickSampler<'a>,
+    kept: BrickSampler<'a>,
     density: Option<BrickSampler<'a>>,
 }
 
@@ -90,7 +90,7 @@ impl VisibilitySampler<'_> {
             }
             None => (p, rho),
         };
-        let (sum, cover) = self.weighted.sample_covered(q);
+        let (sum, cover) = self.kept.sample_covered(q);
         (rho > 0.0 && cover > 0.0).then(|| from_stored(sum, cover))
     }
 }
@@ -218,16 +218,16 @@ fn assemble(grid: &SparseGrid, units: &[Unit], values: &[f32]) -> SparseGrid {
         .filter_map(|(unit, &start)| match *unit {
             Unit::Voxels { origin, mask } => {
                 let block = grid.block(origin >> LEAF_LOG2 as i32);
-                let mut weighted = [0.0; LEAF_VOXELS];
+                let mut kept = [0.0; LEAF_VOXELS];
                 let mut next = values[start..].iter();
                 for slot in (0..LEAF_VOXELS).filter(|&s| Leaf::is_set(&mask, s)) {
                     let rho = match block {
                         Block::Leaf(leaf) => leaf.values.get(slot),
                         Block::Constant(v) => v,
                     };
-                    weighted[slot] = stored(rho, next.next().copied().unwrap_or(0.0));
+                    kept[slot] = stored(rho, next.next().copied().unwrap_or(0.0));
                 }
-                Some((origin, mask, weighted))
+                Some((origin, mask, kept))
             }
             Unit::Tile { .. } => None,
         })
@@ -302,12 +302,12 @@ impl Visibility {
     ) -> Visibility {
         let grid = coarse.as_ref().map_or(fine, |c| &c.grid);
         let v: Vec<f32> = values.iter().map(|v| v.to_f32()).collect();
-        let weighted = assemble(grid, units, &v);
-        let bricks = Bricks::build(&weighted);
+        let kept = assemble(grid, units, &v);
+        let bricks = Bricks::build(&kept);
         Visibility {
             resolution,
             values,
-            weighted,
+            kept,
             bricks,
             coarse,
         }
@@ -322,16 +322,16 @@ impl Visibility {
     pub fn sampler(&self) -> VisibilitySampler<'_> {
         VisibilitySampler {
             level: self.resolution.level,
-            weighted: BrickSampler::new(&self.bricks, &self.weighted),
+            kept: BrickSampler::new(&self.bricks, &self.kept),
             density: self.coarse.as_ref().map(DensityField::sampler),
         }
     }
 
     /// The kept grid ([`stored`]) on the topology of the density `fine`, V sampled at each of its
     /// voxels as a ray samples it: what the fit of V reads.
-    pub fn fine_weighted(&self, fine: &SparseGrid) -> Cow<'_, SparseGrid> {
+    pub fn fine_kept(&self, fine: &SparseGrid) -> Cow<'_, SparseGrid> {
         if self.coarse.is_none() {
-            return Cow::Borrowed(&self.weighted);
+            return Cow::Borrowed(&self.kept);
         }
         let units = units(fine, fine, 0);
         let values: Vec<f32> = points(&units)
@@ -344,10 +344,10 @@ impl Visibility {
         Cow::Owned(assemble(fine, &units, &values))
     }
 
-    /// Bytes held: the values, the weighted grid and the level's density, with their bricks.
+    /// Bytes held: the values, the kept grid and the level's density, with their bricks.
     pub fn memory_bytes(&self) -> u64 {
         (self.values.len() * 2
-            + self.weighted.memory_bytes()
+            + self.kept.memory_bytes()
             + self.bricks.memory_bytes()
             + self
                 .coarse
@@ -419,7 +419,7 @@ mod tests {
             assert!((got - want).abs() < 0.02 * want, "{p}: {got} vs {want}");
         }
         // Outside the medium nothing is stored.
-        assert_eq!(v.weighted.value(IVec3::splat(40)), 0.0);
+        assert_eq!(v.kept.value(IVec3::splat(40)), 0.0);
     }
 
     #[test]
