@@ -13,13 +13,14 @@ use crate::error::Result;
 use crate::io::progress::Phases;
 use crate::light::Lighting;
 use crate::pathtrace::{Medium3d, PathStats, PathTracer};
-use crate::render::sunlight::SunLight;
+use crate::render::sunlight::{self, SunLattice, SunLight};
 use crate::render::{self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows};
 use crate::transfer::cache::{self, Cache, Header, Origin, Source};
-use crate::transfer::memory::BakePlan;
+use crate::transfer::lattice::{DensityMeans, LatticeKind};
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
+use crate::transfer::memory::{BakePlan, LAYOUT_BYTES_PER_VOXEL};
 use crate::transfer::packing::Precision;
-use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLight};
+use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLayout, TransferLight};
 use crate::volume::{load_density, DensityField};
 
 /// How to bake, validated: the grid to read, the medium, the bake settings and the cache's form.
@@ -59,6 +60,8 @@ pub struct Scene {
 /// they cut the render from 1.02 to 0.73 s. Three times the break-even leaves them where they
 /// clearly pay.
 const BRICKED_RAYS_PER_LEAF: u64 = 64;
+/// Bytes of the suns' multiple-scattered radiance the march reads per node (RGB).
+const SUN_RECORD_BYTES: u64 = 12;
 
 /// What the light of one render cost beyond relighting, for `--stats`.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -270,46 +273,46 @@ impl Scene {
 
     /// Bytes relighting the transfer under `lighting` makes beside what the transfer holds: held
     /// coefficients relight into two parts and then their records (the parts beside the records
-    /// while they combine); a transfer relit as read lends its records, copied only for a sun's
-    /// multiple scattering to join them.
-    pub fn relight_plan(&self, lighting: &Lighting) -> u64 {
+    /// while they combine); a transfer relit as read lends its records.
+    pub fn relight_plan(&self) -> u64 {
         let Some(t) = &self.transfer else {
             return 0;
         };
         let records = t.layout.len() as u64 * RADIANCE_BYTES_PER_TRANSFER_VOXEL;
-        match (&t.light, t.lattice.is_some() && !lighting.suns.is_empty()) {
-            (TransferLight::Coefficients { .. }, _) => 2 * records,
-            (TransferLight::Relit(_), true) => records,
-            (TransferLight::Relit(_), false) => 0,
+        match &t.light {
+            TransferLight::Coefficients { .. } => 2 * records,
+            TransferLight::Relit(_) => 0,
         }
     }
 
     /// Bytes the suns' light will hold beyond the transfer, estimated before it is built: a
-    /// shadow volume and a fluence per transfer voxel for each sun not kept from an earlier
-    /// render.
+    /// shadow volume and a fluence per node of the suns' lattice for each sun not kept from an
+    /// earlier render, the lattice's layout, and the radiance the march reads from its nodes.
     pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
         // The shadow volume's estimate walks the density's blocks: only for suns to build.
         let new_suns = self.new_suns(lighting) as u64;
         if new_suns == 0 {
             return 0;
         }
-        let per_sun = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid)
-            + self
-                .transfer
-                .as_ref()
-                .map_or(0, |t| t.layout.len() as u64 * 4);
-        new_suns * per_sun
+        let shadow = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid);
+        let nodes = match &self.transfer {
+            Some(t) => t.lattice.map_or(0, |kind| self.sun_nodes(t, kind) as u64),
+            None => 0,
+        };
+        let per_node = 4 * new_suns + LAYOUT_BYTES_PER_VOXEL + SUN_RECORD_BYTES;
+        new_suns * shadow + nodes * per_node
     }
 
-    /// The working memory of a new sun's multiple-scattering solve, while it runs (one at a
-    /// time): 0 when every sun is kept or the transfer has no lattice.
+    /// The working memory of the new suns' multiple-scattering solve, while it runs (one at a
+    /// time, on links built once): 0 when every sun is kept or the transfer has no lattice.
     pub fn sun_solve_plan(&self, lighting: &Lighting) -> u64 {
         match &self.transfer {
             Some(t) if self.new_suns(lighting) > 0 => t.lattice.map_or(0, |kind| {
-                let reflecting = crate::transfer::lattice::DensityMeans::new(&self.field.grid)
-                    .reflecting_share(self.medium.sigma_t, t.layout.k);
+                let k = self.sun_k(t, kind);
+                let reflecting =
+                    DensityMeans::new(&self.field.grid).reflecting_share(self.medium.sigma_t, k);
                 crate::transfer::memory::sun_solve_bytes(
-                    t.layout.len(),
+                    self.sun_nodes(t, kind),
                     kind.directions(),
                     reflecting,
                 )
@@ -337,7 +340,7 @@ impl Scene {
     }
 
     /// The light of each of `lighting.suns`: kept from an earlier render where the sun has not
-    /// moved, else built now.
+    /// moved, else built now, the new suns' multiple scattering on one lattice.
     fn sun_lights(
         &self,
         transfer: &Transfer,
@@ -345,25 +348,75 @@ impl Scene {
     ) -> (Vec<Arc<SunLight>>, LightReport) {
         let mut kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
         let mut report = LightReport::default();
+        let is_kept = |kept: &[Arc<SunLight>], d: Vec3| {
+            kept.iter().find(|l| l.is_for(d, transfer.medium)).cloned()
+        };
+        let new_suns = lighting
+            .suns
+            .iter()
+            .any(|s| is_kept(&kept, s.direction).is_none());
+        let lattice = transfer.lattice.filter(|_| new_suns).map(|kind| {
+            let clock = Instant::now();
+            let layout = kept
+                .iter()
+                .find_map(|l| l.multiple.as_ref().map(|m| m.layout.clone()))
+                .unwrap_or_else(|| {
+                    Arc::new(TransferLayout::build(
+                        &self.field.grid,
+                        self.sun_k(transfer, kind),
+                    ))
+                });
+            let lattice = SunLattice::build(&self.field, layout, kind, transfer.medium);
+            report.lattice_seconds += clock.elapsed().as_secs_f64();
+            lattice
+        });
         let lights: Vec<Arc<SunLight>> = lighting
             .suns
             .iter()
             .map(|sun| {
-                if let Some(l) = kept
-                    .iter()
-                    .find(|l| l.is_for(sun.direction, transfer.medium))
-                {
-                    return l.clone();
+                if let Some(l) = is_kept(&kept, sun.direction) {
+                    return l;
                 }
-                let light = Arc::new(SunLight::build(&self.field, transfer, sun.direction));
+                let light = Arc::new(SunLight::build(
+                    &self.field,
+                    transfer.medium,
+                    lattice.as_ref(),
+                    sun.direction,
+                ));
                 report.shadow_seconds += light.shadow_seconds;
                 report.lattice_seconds += light.lattice_seconds;
                 kept.push(light.clone());
                 light
             })
             .collect();
-        report.bytes = lights.iter().map(|l| l.memory_bytes()).sum();
+        report.bytes = lights.iter().map(|l| l.memory_bytes()).sum::<u64>()
+            + lights
+                .iter()
+                .find_map(|l| l.multiple.as_ref())
+                .map_or(0, |m| m.layout.memory_bytes() as u64);
         (lights, report)
+    }
+
+    /// The suns' lattice's cell edge for `transfer` ([`sunlight::sun_k`]).
+    fn sun_k(&self, transfer: &Transfer, kind: LatticeKind) -> i32 {
+        sunlight::sun_k(
+            &self.field.grid,
+            transfer.layout.k,
+            kind,
+            self.medium.sigma_t,
+        )
+    }
+
+    /// How many nodes the suns' lattice has: those of the lattice kept from an earlier render,
+    /// else as many as [`TransferLayout::estimate_len`] expects.
+    fn sun_nodes(&self, transfer: &Transfer, kind: LatticeKind) -> usize {
+        let kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
+        match kept.iter().find_map(|l| l.multiple.as_ref()) {
+            Some(m) => m.layout.len(),
+            None => {
+                TransferLayout::estimate_len(&self.field.grid, self.sun_k(transfer, kind)) as usize
+            }
+        }
     }
 
     /// Path-traces the density under `lighting`, handing `consume` the image row by row: the

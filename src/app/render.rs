@@ -551,7 +551,7 @@ fn transfer(
     let estimate = RenderEstimate::new(
         &scene.field,
         scene.render_bricks(view.camera, view.spp, view.lighting),
-        scene.relight_plan(view.lighting),
+        scene.relight_plan(),
         scene.transfer.as_ref().map_or(0, |t| {
             t.layout.memory_bytes() + t.coefficient_bytes() + t.shape_bytes()
         }),

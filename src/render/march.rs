@@ -127,21 +127,35 @@ impl<A: InScatter, B: InScatter> InScatter for (A, B) {
     }
 }
 
-/// The suns' single scattering, exact at the density's resolution (thesis 7.1):
-/// Ls(p) = Σ_suns p·E·e^{−τ_sun(p)}, τ_sun read from each sun's [`ShadowVolume`]. It is the
-/// `direct` layer; the suns' multiple scattering comes through the transfer's nodes. A step
-/// reads each sun's depth at its midpoint; a thick one ([`MAX_STEP_DEPTH`]) that the sun lights
-/// ([`SPLIT_ABOVE`]) is summed over sub-steps ([`Split`]).
+/// The suns' light. Single scattering, exact at the density's resolution (thesis 7.1):
+/// Ls(p) = Σ_suns p·E·e^{−τ_sun(p)}, τ_sun read from each sun's [`ShadowVolume`], the `direct`
+/// layer. A step reads each sun's depth at its midpoint; a thick one ([`MAX_STEP_DEPTH`]) that
+/// the sun lights ([`SPLIT_ABOVE`]) is summed over sub-steps ([`Split`]). Multiple scattering,
+/// the `indirect` layer: p·Σ_suns F·E at the nodes of the suns' lattice
+/// ([`crate::render::sunlight`]), interpolated trilinearly and summed per cell as the transfer's
+/// light is ([`TransferRadiance`]).
 pub struct SunRadiance<'a> {
     field: &'a DensityField,
     /// Each sun's shadow and its p·E per channel.
     suns: Vec<(&'a ShadowVolume, [f32; 3])>,
+    multiple: Option<SunNodes<'a>>,
+}
+
+/// The suns' multiply scattered radiance at the nodes of their lattice: RGB per slot, and a last
+/// all-zero record that missing corners point at.
+struct SunNodes<'a> {
+    inv_k: f32,
+    layout: &'a TransferLayout,
+    nodes: &'a [[f32; 3]],
 }
 
 impl<'a> SunRadiance<'a> {
+    /// `multiple`: the suns' lattice and its nodes' radiance, one record more than it has nodes
+    /// (`None`: single scattering only).
     pub fn new(
         field: &'a DensityField,
         suns: impl IntoIterator<Item = (&'a ShadowVolume, [f32; 3])>,
+        multiple: Option<(&'a TransferLayout, &'a [[f32; 3]])>,
     ) -> Self {
         SunRadiance {
             field,
@@ -149,17 +163,39 @@ impl<'a> SunRadiance<'a> {
                 .into_iter()
                 .map(|(v, e)| (v, e.map(|e| e * PHASE)))
                 .collect(),
+            multiple: multiple.map(|(layout, nodes)| SunNodes {
+                inv_k: 1.0 / layout.k as f32,
+                layout,
+                nodes,
+            }),
         }
+    }
+
+    /// Moves the weights gathered in the current cell of the suns' lattice into the sum.
+    fn flush(&self, sum: &mut SunSum) {
+        if let (Some(m), Some(slots)) = (&self.multiple, sum.cell.slots) {
+            for (&slot, &w) in slots.iter().zip(&sum.weights) {
+                let node = &m.nodes[slot as usize];
+                for (out, v) in sum.indirect.iter_mut().zip(node) {
+                    *out += w * v;
+                }
+            }
+        }
+        sum.weights = [0.0; 8];
     }
 }
 
 /// A ray's sum for [`SunRadiance`]: a density sampler, a step's span, one shadow cursor per
-/// sun and the direct RGB so far.
+/// sun and the direct RGB so far; the cell of the suns' lattice, its steps' weights per corner
+/// and the indirect RGB so far.
 pub struct SunSum<'a> {
     sampler: BrickSampler<'a>,
     span: Vec3,
     cursors: Vec<ShadowCursor>,
     direct: [f32; 3],
+    cell: Cell,
+    weights: [f32; 8],
+    indirect: [f32; 3],
 }
 
 impl<'a> InScatter for SunRadiance<'a> {
@@ -174,6 +210,9 @@ impl<'a> InScatter for SunRadiance<'a> {
             span,
             cursors: vec![ShadowCursor::default(); self.suns.len()],
             direct: [0.0; 3],
+            cell: Cell::default(),
+            weights: [0.0; 8],
+            indirect: [0.0; 3],
         }
     }
 
@@ -197,11 +236,23 @@ impl<'a> InScatter for SunRadiance<'a> {
                 *d += w * e;
             }
         }
+        if let Some(m) = &self.multiple {
+            let (b, f) = floor_split(step.p * m.inv_k);
+            if sum.cell.base != Some(b) {
+                self.flush(sum);
+                sum.cell.enter(m.layout, b, (m.nodes.len() - 1) as u32);
+            }
+            let c = step.weight();
+            for (s, w) in sum.weights.iter_mut().zip(corner_weights(f)) {
+                *s += c * w;
+            }
+        }
     }
 
     #[inline]
-    fn total(&self, sum: SunSum<'a>) -> [[f32; 3]; 2] {
-        [sum.direct, [0.0; 3]]
+    fn total(&self, mut sum: SunSum<'a>) -> [[f32; 3]; 2] {
+        self.flush(&mut sum);
+        [sum.direct, sum.indirect]
     }
 }
 
@@ -254,6 +305,39 @@ impl Split<'_> {
         }
         step.scatter * sum
     }
+}
+
+/// The interpolation cell of a layout that a ray's last step lay in, and its corners' record
+/// slots: a ray takes about K steps per cell, so the layout's lookup is paid once per cell
+/// crossed.
+#[derive(Default)]
+struct Cell {
+    base: Option<IVec3>,
+    slots: Option<[u32; 8]>,
+}
+
+impl Cell {
+    /// Moves to the cell whose lowest corner is node `base` of `layout` (`missing`: the record
+    /// its absent corners point at).
+    #[inline]
+    fn enter(&mut self, layout: &TransferLayout, base: IVec3, missing: u32) {
+        self.base = Some(base);
+        self.slots = layout.cell(base, missing);
+    }
+}
+
+/// The trilinear weights of a cell's eight corners at fractions `f`, corner n having x = bit 2,
+/// y = bit 1, z = bit 0 ([`TransferLayout::cell`]).
+#[inline]
+fn corner_weights(f: Vec3) -> [f32; 8] {
+    let g = Vec3::ONE - f;
+    let yz = [g.y * g.z, g.y * f.z, f.y * g.z, f.y * f.z];
+    let mut w = [0.0f32; 8];
+    for (n, yz) in yz.into_iter().enumerate() {
+        w[n] = g.x * yz;
+        w[n + 4] = f.x * yz;
+    }
+    w
 }
 
 /// Ls interpolated from the per-transfer-voxel radiance of [`crate::render::relight`], with the
@@ -312,7 +396,7 @@ impl<'a> TransferRadiance<'a> {
 
     /// Moves the weights gathered in the current cell into the radiance sum.
     fn flush(&self, sum: &mut CellSum) {
-        if let Some(slots) = sum.slots {
+        if let Some(slots) = sum.cell.slots {
             for ((&slot, &wd), &wi) in slots.iter().zip(&sum.direct).zip(&sum.indirect) {
                 let node = &self.nodes[slot as usize];
                 for ch in 0..3 {
@@ -331,8 +415,7 @@ impl<'a> TransferRadiance<'a> {
 /// the indirect light. A ray takes about K steps per transfer voxel, so the hash lookup and the
 /// 8 × 6 products with node data are paid once per cell crossed; a step adds only its weights.
 pub struct CellSum<'a> {
-    base: Option<IVec3>,
-    slots: Option<[u32; 8]>,
+    cell: Cell,
     direct: [f32; 8],
     indirect: [f32; 8],
     radiance: [[f32; 3]; 2],
@@ -344,8 +427,7 @@ impl<'a> InScatter for TransferRadiance<'a> {
 
     fn start(&self, _span: Vec3) -> CellSum<'a> {
         CellSum {
-            base: None,
-            slots: None,
+            cell: Cell::default(),
             direct: [0.0; 8],
             indirect: [0.0; 8],
             radiance: [[0.0; 3]; 2],
@@ -356,24 +438,15 @@ impl<'a> InScatter for TransferRadiance<'a> {
     #[inline]
     fn add(&self, step: &Step, sum: &mut CellSum<'a>) {
         let (p, c) = (step.p, step.weight());
-        let q = p * self.inv_k;
-        let (b, f) = floor_split(q);
-        if sum.base != Some(b) {
+        let (b, f) = floor_split(p * self.inv_k);
+        if sum.cell.base != Some(b) {
             self.flush(sum);
-            sum.base = Some(b);
-            sum.slots = self.layout.cell(b, self.missing);
+            sum.cell.enter(self.layout, b, self.missing);
         }
-        let g = Vec3::ONE - f;
-        // Corner n has x = bit 2, y = bit 1, z = bit 0 (`corner`).
-        let yz = [g.y * g.z, g.y * f.z, f.y * g.z, f.y * f.z];
-        let mut w = [0.0f32; 8];
-        for (n, yz) in yz.into_iter().enumerate() {
-            w[n] = g.x * yz;
-            w[n + 4] = f.x * yz;
-        }
+        let w = corner_weights(f);
         let mut cd = c;
         if let (Some(sampler), Some(slots), Some(shaping)) =
-            (sum.visibility.as_mut(), sum.slots, self.shaping)
+            (sum.visibility.as_mut(), sum.cell.slots, self.shaping)
         {
             // The missing corner's V is 0, as its light.
             let fitted: f32 = w

@@ -23,7 +23,7 @@ use relight::relight;
 use crate::error::Result;
 use crate::io::image::{ImageBuf, Layer};
 use crate::light::Lighting;
-use crate::transfer::{Transfer, PHASE};
+use crate::transfer::Transfer;
 use crate::volume::{DensityField, SparseGrid};
 use sunlight::SunLight;
 
@@ -128,18 +128,12 @@ pub fn render_volume<R>(
     let env_coeffs = lighting.sh_coefficients(transfer.bands);
     let project = t.elapsed();
     let t = Instant::now();
-    let mut radiance = relight(transfer, &env_coeffs)?;
-    // Each sun's multiple scattering joins the nodes' indirect light (p·F·E); its single
-    // scattering is marched from its shadow volume.
-    for (light, sun) in suns.iter().zip(&lighting.suns) {
-        if let Some(fluence) = &light.multiple {
-            for (node, f) in radiance.to_mut().nodes.iter_mut().zip(fluence) {
-                for (c, e) in node[3..].iter_mut().zip(sun.irradiance) {
-                    *c += PHASE * f * e;
-                }
-            }
-        }
-    }
+    let radiance = relight(transfer, &env_coeffs)?;
+    let multiple = sunlight::multiple_radiance(
+        suns.iter()
+            .zip(&lighting.suns)
+            .filter_map(|(light, sun)| light.multiple.as_ref().map(|m| (m, sun.irradiance))),
+    );
     let source = (
         march::TransferRadiance::new(
             &transfer.layout,
@@ -159,6 +153,9 @@ pub fn render_volume<R>(
             suns.iter()
                 .zip(&lighting.suns)
                 .map(|(light, sun)| (&light.shadow, sun.irradiance)),
+            multiple
+                .as_ref()
+                .map(|(layout, nodes)| (layout.as_ref(), nodes.as_slice())),
         ),
     );
     let relight_time = t.elapsed();

@@ -1067,28 +1067,24 @@ impl Lattice {
     }
 }
 
-/// The multiply scattered fluence of light whose first scattering is known: `emission[x]` is the
-/// power node x scatters per cell volume (albedo × collision density, e.g. σs·Tr_sun·E of a sun
-/// at E = 1). Returns the fluence per node of light scattered once or more — that first
-/// scattering included, as it leaves its cell. Non-negative wherever the emission is.
-pub fn solve_emission(
-    field: &DensityField,
-    layout: &TransferLayout,
-    kind: LatticeKind,
-    medium: Medium,
-    emission: &[f32],
-) -> Vec<f32> {
-    let lattice = Lattice::build(field, layout, kind, medium, 1);
-    // The energy criterion weighs what remains against the total: the first scattering stands
-    // for the "single" part here.
-    let first = Source {
-        energy_single: emission.iter().map(|&e| e as f64).sum(),
-        convergence: lattice.convergence,
-        bands: 1,
-        medium,
-    };
-    let (fluence, _) = transport_chunk(&lattice.links, &first, Drive::Emission(emission), None);
-    fluence.iter().map(|row| row[0].x).collect()
+impl Lattice {
+    /// The multiply scattered fluence of light whose first scattering is known: `emission[x]` is
+    /// the power node x scatters per cell volume (albedo × collision density, e.g. σs·Tr_sun·E of
+    /// a sun at E = 1). Returns the fluence per node of light scattered once or more — that first
+    /// scattering included, as it leaves its cell. Non-negative wherever the emission is. The
+    /// links do not depend on the light, so one lattice solves every sun of a render.
+    pub fn solve_emission(&self, emission: &[f32]) -> Vec<f32> {
+        // The energy criterion weighs what remains against the total: the first scattering
+        // stands for the "single" part here.
+        let first = Source {
+            energy_single: emission.iter().map(|&e| e as f64).sum(),
+            convergence: self.convergence,
+            bands: 1,
+            medium: self.medium,
+        };
+        let (fluence, _) = transport_chunk(&self.links, &first, Drive::Emission(emission), None);
+        fluence.iter().map(|row| row[0].x).collect()
+    }
 }
 
 #[cfg(test)]

@@ -425,6 +425,56 @@ fn transfer_radiance_interpolates_slots() {
 }
 
 #[test]
+fn the_suns_multiple_scattering_is_interpolated_between_their_own_nodes() {
+    // The suns' lattice at an edge of 3, its nodes' RGB (x, 1, 0), one plane (x = 0) dark: a
+    // step adds weight()·(trilinear radiance) to `indirect`, nothing to `direct`, and steps that
+    // leave a cell and come back to it lose no weight.
+    let g = unit_tile(Transform::default(), 1.0);
+    let field = DensityField::new(g.clone());
+    let layout = TransferLayout::build(&g, 3);
+    let mut nodes: Vec<[f32; 3]> = layout
+        .voxels()
+        .iter()
+        .map(|v| match v.x {
+            0 => [0.0; 3],
+            x => [x as f32, 1.0, 0.0],
+        })
+        .collect();
+    nodes.push([0.0; 3]);
+    let src = SunRadiance::new(&field, [], Some((&layout, &nodes)));
+    let want = |q: Vec3, ch: usize| -> f32 {
+        layout
+            .corners(q)
+            .iter()
+            .map(|(s, w)| s.map_or(0.0, |s| w * nodes[s][ch]))
+            .sum()
+    };
+    let steps = [
+        (Vec3::new(33.0, 20.5, 70.25), 0.5),
+        (Vec3::new(34.5, 21.0, 70.75), 0.25),
+        (Vec3::new(2.0, 20.5, 70.25), 2.0),
+        (Vec3::new(33.0, 20.5, 70.25), 1.0),
+    ];
+    let mut sum = src.start(Vec3::X);
+    for &(q, c) in &steps {
+        src.add(&step_at(q, 1.0, c), &mut sum);
+    }
+    let [direct, indirect] = src.total(sum);
+    assert_eq!(direct, [0.0; 3]);
+    for (ch, got) in indirect.into_iter().enumerate() {
+        let expect: f32 = steps.iter().map(|&(q, c)| c * want(q, ch)).sum();
+        assert!(
+            (got - expect).abs() <= 1e-5 * expect,
+            "{ch}: {got} vs {expect}"
+        );
+    }
+    // Halfway between nodes 11 and 12 on x (34.5 / 3 = 11.5): red 11.5; beside the dark plane
+    // (2 / 3 of the way from node 0 to node 1), green 2/3.
+    assert!((want(Vec3::new(34.5, 21.0, 70.5), 0) - 11.5).abs() < 1e-4);
+    assert!((want(Vec3::new(2.0, 21.0, 70.5), 1) - 2.0 / 3.0).abs() < 1e-5);
+}
+
+#[test]
 fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution() {
     // A 32³ cube at 12.8 optical depths across: V falls several-fold within a transfer voxel
     // under its faces. Direct light equal to c × the fitted node values of V must come out as
@@ -568,7 +618,7 @@ fn a_thick_sunlit_step_is_split_so_its_light_falls_within_it() {
     let field = DensityField::new(block_box(IVec3::new(32, 32, 24)));
     let (sigma_t, albedo, e) = (2.0f32, 0.8f32, [1.0f32, 2.0, 4.0]);
     let shadow = ShadowVolume::build(&field, sigma_t, Vec3::Z);
-    let source = SunRadiance::new(&field, [(&shadow, e)]);
+    let source = SunRadiance::new(&field, [(&shadow, e)], None);
     let scene = Scene::new(&field, medium(sigma_t, albedo), &source, None);
     // Half a voxel of plateau above z = 22.5, then the face's ramp: ∫ρ = 1.
     let tau0 = sigma_t * 1.0;

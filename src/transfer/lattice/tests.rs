@@ -129,7 +129,8 @@ fn slab_fluence(sigma_t: f32) -> Vec<(i32, f32)> {
             sigma_t * sum / k as f32
         })
         .collect();
-    let fluence = solve_emission(&field, &layout, LatticeKind::All, medium, &seed);
+    let fluence =
+        Lattice::build(&field, &layout, LatticeKind::All, medium, 1).solve_emission(&seed);
     let centre = wide / k / 2;
     let mut column: Vec<(i32, f32)> = layout
         .voxels()
