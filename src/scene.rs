@@ -17,8 +17,8 @@ use crate::render::sunlight::{self, SunLattice, SunLight};
 use crate::render::{self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows};
 use crate::transfer::cache::{self, Cache, Header, Origin, Source};
 use crate::transfer::lattice::{DensityMeans, LatticeKind};
+use crate::transfer::memory::BakePlan;
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
-use crate::transfer::memory::{BakePlan, LAYOUT_BYTES_PER_VOXEL};
 use crate::transfer::packing::Precision;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLayout, TransferLight};
 use crate::volume::{load_density, DensityField};
@@ -51,6 +51,9 @@ pub struct Scene {
     /// The suns' shadow volumes and lattice solves, kept while a sun does not move: another
     /// camera, or another environment with the same sun, reuses them.
     sun_lights: Mutex<Vec<Arc<SunLight>>>,
+    /// The suns' lattice's nodes ([`sunlight::sun_k`]), laid out once for every sun and render
+    /// of this transfer.
+    sun_layout: Mutex<Option<Arc<TransferLayout>>>,
 }
 
 /// Camera rays per leaf from which a march builds the density's bricks. Bricks hold about twice
@@ -126,6 +129,7 @@ impl Scene {
             read_seconds,
             field_seconds: clock.elapsed().as_secs_f64(),
             sun_lights: Mutex::new(Vec::new()),
+            sun_layout: Mutex::new(None),
         })
     }
 
@@ -295,12 +299,15 @@ impl Scene {
             return 0;
         }
         let shadow = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid);
-        let nodes = match &self.transfer {
-            Some(t) => t.lattice.map_or(0, |kind| self.sun_nodes(t, kind) as u64),
+        let lattice = match &self.transfer {
+            Some(t) => t.lattice.map_or(0, |kind| {
+                let layout = self.sun_layout(t, kind);
+                layout.memory_bytes() as u64
+                    + layout.len() as u64 * (4 * new_suns + SUN_RECORD_BYTES)
+            }),
             None => 0,
         };
-        let per_node = 4 * new_suns + LAYOUT_BYTES_PER_VOXEL + SUN_RECORD_BYTES;
-        new_suns * shadow + nodes * per_node
+        new_suns * shadow + lattice
     }
 
     /// The working memory of the new suns' multiple-scattering solve, while it runs (one at a
@@ -308,11 +315,11 @@ impl Scene {
     pub fn sun_solve_plan(&self, lighting: &Lighting) -> u64 {
         match &self.transfer {
             Some(t) if self.new_suns(lighting) > 0 => t.lattice.map_or(0, |kind| {
-                let k = self.sun_k(t, kind);
-                let reflecting =
-                    DensityMeans::new(&self.field.grid).reflecting_share(self.medium.sigma_t, k);
+                let layout = self.sun_layout(t, kind);
+                let reflecting = DensityMeans::new(&self.field.grid)
+                    .reflecting_share(self.medium.sigma_t, layout.k);
                 crate::transfer::memory::sun_solve_bytes(
-                    self.sun_nodes(t, kind),
+                    layout.len(),
                     kind.directions(),
                     reflecting,
                 )
@@ -337,6 +344,7 @@ impl Scene {
             .get_mut()
             .unwrap_or_else(|e| e.into_inner())
             .clear();
+        *self.sun_layout.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
     }
 
     /// The light of each of `lighting.suns`: kept from an earlier render where the sun has not
@@ -357,15 +365,7 @@ impl Scene {
             .any(|s| is_kept(&kept, s.direction).is_none());
         let lattice = transfer.lattice.filter(|_| new_suns).map(|kind| {
             let clock = Instant::now();
-            let layout = kept
-                .iter()
-                .find_map(|l| l.multiple.as_ref().map(|m| m.layout.clone()))
-                .unwrap_or_else(|| {
-                    Arc::new(TransferLayout::build(
-                        &self.field.grid,
-                        self.sun_k(transfer, kind),
-                    ))
-                });
+            let layout = self.sun_layout(transfer, kind);
             let lattice = SunLattice::build(&self.field, layout, kind, transfer.medium);
             report.lattice_seconds += clock.elapsed().as_secs_f64();
             lattice
@@ -397,26 +397,19 @@ impl Scene {
         (lights, report)
     }
 
-    /// The suns' lattice's cell edge for `transfer` ([`sunlight::sun_k`]).
-    fn sun_k(&self, transfer: &Transfer, kind: LatticeKind) -> i32 {
-        sunlight::sun_k(
-            &self.field.grid,
-            transfer.layout.k,
-            kind,
-            self.medium.sigma_t,
-        )
-    }
-
-    /// How many nodes the suns' lattice has: those of the lattice kept from an earlier render,
-    /// else as many as [`TransferLayout::estimate_len`] expects.
-    fn sun_nodes(&self, transfer: &Transfer, kind: LatticeKind) -> usize {
-        let kept = self.sun_lights.lock().unwrap_or_else(|e| e.into_inner());
-        match kept.iter().find_map(|l| l.multiple.as_ref()) {
-            Some(m) => m.layout.len(),
-            None => {
-                TransferLayout::estimate_len(&self.field.grid, self.sun_k(transfer, kind)) as usize
-            }
-        }
+    /// The suns' lattice's nodes for `transfer`, laid out on first use.
+    fn sun_layout(&self, transfer: &Transfer, kind: LatticeKind) -> Arc<TransferLayout> {
+        let mut held = self.sun_layout.lock().unwrap_or_else(|e| e.into_inner());
+        held.get_or_insert_with(|| {
+            let k = sunlight::sun_k(
+                &self.field.grid,
+                &transfer.layout,
+                kind,
+                self.medium.sigma_t,
+            );
+            Arc::new(TransferLayout::build(&self.field.grid, k))
+        })
+        .clone()
     }
 
     /// Path-traces the density under `lighting`, handing `consume` the image row by row: the

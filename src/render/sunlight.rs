@@ -42,17 +42,25 @@ const MIN_SUN_K: i32 = 3;
 /// fixed figure so a render looks the same on every machine.
 const MAX_REFINED_SOLVE_BYTES: u64 = 512 << 20;
 
-/// The cell edge of the suns' lattice for a transfer of edge `k`: half of it, not below
-/// [`MIN_SUN_K`], nor past [`MAX_REFINED_SOLVE_BYTES`] (estimated from the density's leaves and
-/// tiles, so a volume of billions of voxels is answered at once).
-pub fn sun_k(density: &SparseGrid, k: i32, kind: LatticeKind, sigma_t: f32) -> i32 {
+/// The cell edge of the suns' lattice for `transfer`: half of its edge, not below [`MIN_SUN_K`],
+/// nor past [`MAX_REFINED_SOLVE_BYTES`] — reckoned from the transfer's own nodes, 2³ times as
+/// many (fewer where the volume's surface is large against it), so a volume of billions of
+/// voxels is answered at once.
+pub fn sun_k(
+    density: &SparseGrid,
+    transfer: &TransferLayout,
+    kind: LatticeKind,
+    sigma_t: f32,
+) -> i32 {
+    let k = transfer.k;
     let fine = ((k + 1) / 2).max(MIN_SUN_K).min(k);
     if fine == k {
         return k;
     }
-    let nodes = TransferLayout::estimate_len(density, fine) as usize;
+    let nodes = transfer.len() as f64 * (k as f64 / fine as f64).powi(3);
     let reflecting = lattice::DensityMeans::new(density).reflecting_share(sigma_t, fine);
-    match sun_solve_bytes(nodes, kind.directions(), reflecting) <= MAX_REFINED_SOLVE_BYTES {
+    match sun_solve_bytes(nodes as usize, kind.directions(), reflecting) <= MAX_REFINED_SOLVE_BYTES
+    {
         true => fine,
         false => k,
     }
@@ -201,17 +209,25 @@ mod tests {
     #[test]
     fn the_suns_lattice_halves_the_transfers_cells_down_to_three_voxels() {
         let g = block_box(IVec3::splat(48));
-        let k = |transfer_k| sun_k(&g, transfer_k, LatticeKind::All, 1.0);
+        let k = |k| sun_k(&g, &TransferLayout::build(&g, k), LatticeKind::All, 1.0);
         assert_eq!([2, 3, 4, 5, 6, 7, 8, 12].map(k), [2, 3, 3, 3, 3, 4, 4, 6]);
     }
 
     #[test]
     fn a_volume_too_large_to_refine_keeps_the_transfers_cells() {
-        // A root tile: 4096³ voxels, 2.5·10⁹ nodes at an edge of 3, answered from the tile alone.
+        // 3³ node tiles, a box of 384³ voxels: 66³ nodes at an edge of 6, 2.3 M at 3 (1.4 GiB of
+        // links); a single block of them refines.
         let mut g = SparseGrid::new(Transform::default(), 0.0);
-        g.insert_tile(TileLevel::Root, IVec3::ZERO, 1.0);
-        let clock = Instant::now();
-        assert_eq!(sun_k(&g, 6, LatticeKind::All, 1.0), 6);
-        assert!(clock.elapsed().as_secs_f64() < 5.0);
+        for n in 0..27 {
+            let origin = IVec3::new(n / 9, (n / 3) % 3, n % 3) * 128;
+            g.insert_tile(TileLevel::Node, origin, 1.0);
+        }
+        assert_eq!(
+            sun_k(&g, &TransferLayout::build(&g, 6), LatticeKind::All, 1.0),
+            6
+        );
+        let small = block_box(IVec3::splat(8));
+        let layout = TransferLayout::build(&small, 6);
+        assert_eq!(sun_k(&small, &layout, LatticeKind::All, 1.0), 3);
     }
 }

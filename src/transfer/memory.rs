@@ -239,7 +239,7 @@ pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f6
 const MAX_LAID_OUT_VOXELS: u64 = 16_000_000;
 /// Bytes of layout per transfer voxel (its coordinate, its slot in a 4³ tile, the tile map's
 /// share), for a plan that estimates.
-pub const LAYOUT_BYTES_PER_VOXEL: u64 = 20;
+const LAYOUT_BYTES_PER_VOXEL: u64 = 20;
 
 /// What a bake of a density with given settings will make, before it runs.
 #[derive(Debug, Clone, Copy)]
