@@ -116,10 +116,90 @@ pub const MAX_GENERATIONS: usize = 5000;
 /// Coefficients transported together: 8 f32 fill a SIMD-friendly run, and the per-chunk buffers
 /// (3 × nodes × 8 floats) keep peak memory bounded whatever the band count.
 pub(crate) const CHUNK: usize = 8;
+
+/// What a transport carries per node and link: one value (the DC term, whose run decides the
+/// generation count, or a sun's fluence) or a [`Chunk`] of coefficients. Every operation is lane
+/// by lane the same arithmetic as on scalars, so a value comes out the same either way; one value
+/// a node keeps a sun's transport state an eighth of a chunk's, mostly in cache, where the
+/// sweep's reads of its nodes in line order are what it waits for.
+trait Lanes:
+    Copy
+    + Send
+    + Sync
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<f32, Output = Self>
+{
+    const ZERO: Self;
+    /// The first lane.
+    fn first(self) -> f32;
+    /// `values` in the first lanes, the rest zero.
+    fn from_values(values: &[f32]) -> Self;
+}
+
+impl Lanes for f32 {
+    const ZERO: f32 = 0.0;
+
+    fn first(self) -> f32 {
+        self
+    }
+
+    fn from_values(values: &[f32]) -> f32 {
+        values.first().copied().unwrap_or(0.0)
+    }
+}
+
 /// A node's coefficients of one chunk as SIMD lanes (the unused ones stay zero): the per-link
-/// update is then a few vector instructions, lane by lane the same arithmetic as scalars.
-type Row = [Vec4; CHUNK / 4];
-const ZERO_ROW: Row = [Vec4::ZERO; CHUNK / 4];
+/// update is then a few vector instructions.
+#[derive(Debug, Clone, Copy)]
+struct Chunk([Vec4; CHUNK / 4]);
+
+impl std::ops::Add for Chunk {
+    type Output = Chunk;
+    #[inline(always)]
+    fn add(self, o: Chunk) -> Chunk {
+        Chunk(std::array::from_fn(|c| self.0[c] + o.0[c]))
+    }
+}
+
+impl std::ops::Sub for Chunk {
+    type Output = Chunk;
+    #[inline(always)]
+    fn sub(self, o: Chunk) -> Chunk {
+        Chunk(std::array::from_fn(|c| self.0[c] - o.0[c]))
+    }
+}
+
+impl std::ops::Mul<f32> for Chunk {
+    type Output = Chunk;
+    #[inline(always)]
+    fn mul(self, f: f32) -> Chunk {
+        Chunk(self.0.map(|v| v * f))
+    }
+}
+
+impl Lanes for Chunk {
+    const ZERO: Chunk = Chunk([Vec4::ZERO; CHUNK / 4]);
+
+    fn first(self) -> f32 {
+        self.0[0].x
+    }
+
+    fn from_values(values: &[f32]) -> Chunk {
+        let mut row = Chunk::ZERO;
+        for (c, v) in values.iter().take(CHUNK).enumerate() {
+            row.0[c / 4][c % 4] = *v;
+        }
+        row
+    }
+}
+
+impl Chunk {
+    /// The lanes in order.
+    fn values(&self) -> impl Iterator<Item = f32> + '_ {
+        self.0.iter().flat_map(|v| v.to_array())
+    }
+}
 const NO_LINK: u32 = u32::MAX;
 /// Longest segment marched, in sub-steps: a corner link at K = 64 is 64·√3 / 0.5 ≈ 222 steps.
 const MAX_SEGMENT_STEPS: usize = 256;
@@ -436,15 +516,17 @@ fn cell_links(
     medium: Medium,
 ) -> [Link; MAX_DIRECTIONS] {
     let d = dirs.len();
-    let segments: Vec<Segment> = dirs
-        .offsets
-        .iter()
-        .zip(lengths)
-        .map(|(off, &length)| {
+    let mut segments: Vec<Option<Segment>> = (0..d).map(|_| None).collect();
+    for (j, (off, &length)) in dirs.offsets.iter().zip(lengths).enumerate() {
+        let o = dirs.opposite[j];
+        if o > j {
             let half = off.as_vec3() * (k as f32 / 2.0);
-            segment(acc, x - half, x + half, length, medium.sigma_t)
-        })
-        .collect();
+            let [there, back] = segment_pair(acc, x - half, x + half, length, medium.sigma_t);
+            (segments[j], segments[o]) = (Some(there), Some(back));
+        }
+    }
+    // Every direction has its opposite among them (`Directions::new`).
+    let segments: Vec<Segment> = segments.into_iter().flatten().collect();
     let lambda: Vec<f64> = segments
         .iter()
         .zip(&dirs.offsets)
@@ -609,10 +691,16 @@ fn leaving(t: f32) -> f32 {
 }
 
 /// Marches the segment from index point `a` to `b` (world length `length`; the node is its
-/// midpoint), the density constant over each sub-step, and integrates exactly over that profile.
-/// Emission is spread along it in proportion to the density, as collisions are; ε and η are the
-/// density-weighted shares of it that escape past the end and that cross the node.
-fn segment(acc: &mut BrickSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) -> Segment {
+/// midpoint), the density constant over each sub-step, and integrates exactly over that profile
+/// both ways: `[a → b, b → a]`. A direction and its opposite cross the same density, so one
+/// march serves both links.
+fn segment_pair(
+    acc: &mut BrickSampler,
+    a: Vec3,
+    b: Vec3,
+    length: f32,
+    sigma_t: f32,
+) -> [Segment; 2] {
     let pairs = ((b - a).length() / (2.0 * SEGMENT_STEP_VOXELS)).ceil() as usize;
     let steps = (2 * pairs.max(1)).min(MAX_SEGMENT_STEPS);
     let dl = length / steps as f32;
@@ -622,11 +710,23 @@ fn segment(acc: &mut BrickSampler, a: Vec3, b: Vec3, length: f32, sigma_t: f32) 
             .sample(a + (b - a) * ((i as f32 + 0.5) / steps as f32))
             .max(0.0);
     }
+    let rho = &mut rho[..steps];
+    let forward = segment(rho, length, sigma_t * dl);
+    rho.reverse();
+    [forward, segment(rho, length, sigma_t * dl)]
+}
+
+/// A segment of world length `length` through sub-steps of densities `rho` (optical depth
+/// `rho·depth_per_density` each), its node at the midpoint: how it transmits, and what of the
+/// light emitted along it, in proportion to the density as collisions are, escapes past its end
+/// (ε) and crosses the node (η).
+fn segment(rho: &[f32], length: f32, depth_per_density: f32) -> Segment {
+    let steps = rho.len();
     let mut taus = [0f32; MAX_SEGMENT_STEPS];
-    for (t, r) in taus.iter_mut().zip(&rho).take(steps) {
-        *t = sigma_t * r * dl;
+    for (t, r) in taus.iter_mut().zip(rho) {
+        *t = depth_per_density * r;
     }
-    let (rho, taus) = (&rho[..steps], &taus[..steps]);
+    let taus = &taus[..steps];
     // Optical depth from the start to the end of each sub-step; the node ends sub-step steps/2 − 1.
     let mut ends = [0f32; MAX_SEGMENT_STEPS];
     let mut tau = 0.0f32;
@@ -677,19 +777,19 @@ enum Drive<'a> {
 /// exactly one link per cell ([`lines`] places every cell once), and a cell's link alone touches
 /// the cell's rows — its fluence, its next emission, and its reflected light in the buffer of the
 /// sweep's direction pair.
-struct SweepRows<'a> {
-    rows: *mut Row,
+struct SweepRows<'a, R> {
+    rows: *mut R,
     len: usize,
-    _rows: std::marker::PhantomData<&'a mut [Row]>,
+    _rows: std::marker::PhantomData<&'a mut [R]>,
 }
 
 // SAFETY: the rows are only reached through `take` and `add`, whose callers guarantee that no two
 // threads touch one row during a sweep (above).
-unsafe impl Send for SweepRows<'_> {}
-unsafe impl Sync for SweepRows<'_> {}
+unsafe impl<R: Send> Send for SweepRows<'_, R> {}
+unsafe impl<R: Sync> Sync for SweepRows<'_, R> {}
 
-impl<'a> SweepRows<'a> {
-    fn new(rows: &'a mut [Row]) -> SweepRows<'a> {
+impl<'a, R: Lanes> SweepRows<'a, R> {
+    fn new(rows: &'a mut [R]) -> SweepRows<'a, R> {
         SweepRows {
             rows: rows.as_mut_ptr(),
             len: rows.len(),
@@ -701,7 +801,7 @@ impl<'a> SweepRows<'a> {
     ///
     /// # Safety
     /// No task of the sweep writes row `i`.
-    unsafe fn get(&self, i: usize) -> Row {
+    unsafe fn get(&self, i: usize) -> R {
         assert!(i < self.len);
         // SAFETY: in bounds, and nobody writes it (the caller's promise).
         unsafe { std::ptr::read(self.rows.add(i)) }
@@ -711,23 +811,21 @@ impl<'a> SweepRows<'a> {
     ///
     /// # Safety
     /// No other task of the sweep reaches row `i`.
-    unsafe fn take(&self, i: usize) -> Row {
+    unsafe fn take(&self, i: usize) -> R {
         assert!(i < self.len);
         // SAFETY: in bounds, and ours alone (the caller's promise).
-        unsafe { std::ptr::replace(self.rows.add(i), ZERO_ROW) }
+        unsafe { std::ptr::replace(self.rows.add(i), R::ZERO) }
     }
 
     /// Adds `value` to row `i`.
     ///
     /// # Safety
     /// As [`SweepRows::take`].
-    unsafe fn add(&self, i: usize, value: &Row) {
+    unsafe fn add(&self, i: usize, value: R) {
         assert!(i < self.len);
         // SAFETY: in bounds, and ours alone (the caller's promise).
         let row = unsafe { &mut *self.rows.add(i) };
-        for c in 0..CHUNK / 4 {
-            row[c] += value[c];
-        }
+        *row = *row + value;
     }
 }
 
@@ -735,12 +833,12 @@ impl<'a> SweepRows<'a> {
 /// collisions that feed the next and the fluence read out so far, side by side (one place in
 /// memory a link reaches, not three); per reflecting cell and pair of opposite directions,
 /// reflected light waiting to leave.
-struct State {
+struct State<R> {
     /// [`NODE_ROWS`] rows a node: `emitting`, the other of the first two (next), then fluence.
-    nodes: Vec<Row>,
+    nodes: Vec<R>,
     /// Which of a node's first two rows holds the emission; they trade places each generation.
     emitting: usize,
-    reflected: Vec<Row>,
+    reflected: Vec<R>,
 }
 
 /// A node's rows in [`State::nodes`].
@@ -752,11 +850,11 @@ const FLUENCE: usize = 2;
 /// task in a fixed order, so the result does not depend on the thread count. `INFLOW`: generation
 /// 0, the environment's light entering each line (`inflow`), unscattered, so carried apart from
 /// the light cells reflect and not read out.
-fn sweep<const INFLOW: bool>(
+fn sweep<R: Lanes, const INFLOW: bool>(
     links: &Links,
     j: usize,
-    state: &mut State,
-    inflow: Row,
+    state: &mut State<R>,
+    inflow: R,
     albedo: f32,
     c0: usize,
 ) -> f64 {
@@ -770,10 +868,10 @@ fn sweep<const INFLOW: bool>(
     let task = |task: usize| {
         let mut added = 0.0f64;
         // The scattered flux entering the cell, and in generation 0 the unscattered one.
-        let (mut p, mut unscattered) = (ZERO_ROW, ZERO_ROW);
+        let (mut p, mut unscattered) = (R::ZERO, R::ZERO);
         for link in &sweep.links[sweep.tasks[task]..sweep.tasks[task + 1]] {
             if link.node & LINE_START != 0 {
-                (p, unscattered) = (ZERO_ROW, inflow);
+                (p, unscattered) = (R::ZERO, inflow);
             }
             let cell = (link.node & !LINE_START) as usize;
             let x = cell * NODE_ROWS;
@@ -784,44 +882,34 @@ fn sweep<const INFLOW: bool>(
             let reflects = row != NO_LINK as usize;
             let back = match reflects {
                 true => unsafe { reflected.take(waiting + row) },
-                false => ZERO_ROW,
+                false => R::ZERO,
             };
-            let mut entering = p;
-            if INFLOW {
-                for c in 0..CHUNK / 4 {
-                    entering[c] += unscattered[c];
-                }
-            }
-            let (mut read, mut out, mut collided) = (ZERO_ROW, ZERO_ROW, ZERO_ROW);
+            let entering = match INFLOW {
+                true => p + unscattered,
+                false => p,
+            };
             let enter = 1.0 - link.reflect;
-            for c in 0..CHUNK / 4 {
-                read[c] = p[c] * link.read_in + e[c] * link.read_emit;
-                // Only entering flux feeds the next generation: the cell's own emission
-                // re-collides inside its self-scattering gain already.
-                collided[c] = albedo * enter * entering[c] * (1.0 - link.trans);
-                out[c] = enter * p[c] * link.trans + e[c] * link.emit_out + back[c];
-                if INFLOW {
-                    unscattered[c] = enter * unscattered[c] * link.trans;
-                }
+            let read = p * link.read_in + e * link.read_emit;
+            // Only entering flux feeds the next generation: the cell's own emission re-collides
+            // inside its self-scattering gain already.
+            let collided = entering * (albedo * enter) * (1.0 - link.trans);
+            let out = p * enter * link.trans + e * link.emit_out + back;
+            if INFLOW {
+                unscattered = unscattered * enter * link.trans;
             }
             unsafe {
-                nodes.add(x + FLUENCE, &read);
-                nodes.add(x + next, &collided);
+                nodes.add(x + FLUENCE, read);
+                nodes.add(x + next, collided);
             }
             if reflects && link.reflect > 0.0 {
-                let mut r = ZERO_ROW;
-                for c in 0..CHUNK / 4 {
-                    r[c] = albedo * link.reflect * entering[c];
-                }
-                unsafe { reflected.add(waiting + row, &r) };
+                let r = entering * (albedo * link.reflect);
+                unsafe { reflected.add(waiting + row, r) };
             }
             if c0 == 0 {
-                added += read[0].x as f64;
+                added += read.first() as f64;
             }
             // What leaves enters the next cell of the line, as it would a fresh cell's zero.
-            for c in 0..CHUNK / 4 {
-                p[c] = Vec4::ZERO + out[c];
-            }
+            p = R::ZERO + out;
         }
         added
     };
@@ -836,22 +924,22 @@ fn sweep<const INFLOW: bool>(
 /// Transports one drive; stops by the energy criterion when `stop` is `None` (the chunk holding
 /// the DC term, or a sun), else runs exactly the generations of `stop`. Returns the fluence per
 /// node (its first `width` lanes), with the tail of the generations not swept added (module doc).
-fn transport_chunk(
+fn transport_chunk<R: Lanes>(
     links: &Links,
     first: &Source,
     drive: Drive,
     stop: Option<Stop>,
-) -> (Vec<Row>, LatticeStats) {
+) -> (Vec<R>, LatticeStats) {
     let (coeffs, albedo) = (first.bands * first.bands, first.medium.albedo);
     let n = links.sweeps[0].links.len();
     // The coefficients transported, what the first generation emits, and where it starts:
     // the environment enters at generation 0 and emits nothing; a known emission is generation 1.
-    let mut nodes = vec![ZERO_ROW; n * NODE_ROWS];
+    let mut nodes = vec![R::ZERO; n * NODE_ROWS];
     let (c0, width, start) = match drive {
         Drive::Environment { c0, width } => (c0, width, 0),
         Drive::Emission(q) => {
             for (node, &e) in nodes.chunks_exact_mut(NODE_ROWS).zip(q) {
-                node[0] = lanes(&[e]);
+                node[0] = R::from_values(&[e]);
             }
             (0, 1, 1)
         }
@@ -860,7 +948,7 @@ fn transport_chunk(
     let mut state = State {
         nodes,
         emitting: 0,
-        reflected: vec![ZERO_ROW; links.reflecting_cells * (d / 2)],
+        reflected: vec![R::ZERO; links.reflecting_cells * (d / 2)],
     };
     let mut stats = LatticeStats {
         energy_single: first.energy_single,
@@ -870,7 +958,7 @@ fn transport_chunk(
     let limit = stop.map_or(MAX_GENERATIONS, |s| s.generations);
     // The fluence before the generation that may be the last: the tail takes that generation's
     // shape.
-    let mut before: Vec<Row> = Vec::new();
+    let mut before: Vec<R> = Vec::new();
     for generation in start..=limit {
         if stop.is_none() && generation >= 2 || generation == limit {
             before.clear();
@@ -884,15 +972,15 @@ fn transport_chunk(
         state
             .nodes
             .chunks_exact_mut(NODE_ROWS)
-            .for_each(|node| node[next] = ZERO_ROW);
+            .for_each(|node| node[next] = R::ZERO);
         let mut added = 0.0f64;
         for j in 0..d {
             added += match inflow {
                 true => {
-                    let p = lanes(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
-                    sweep::<true>(links, j, &mut state, p, albedo, c0)
+                    let p = R::from_values(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
+                    sweep::<R, true>(links, j, &mut state, p, albedo, c0)
                 }
-                false => sweep::<false>(links, j, &mut state, ZERO_ROW, albedo, c0),
+                false => sweep::<R, false>(links, j, &mut state, R::ZERO, albedo, c0),
             };
         }
         state.emitting = next;
@@ -931,9 +1019,7 @@ fn transport_chunk(
     let tail = tail_factor(stop.map_or(stats.ratio, |s| s.ratio));
     if tail > 0.0 && before.len() * NODE_ROWS == nodes.len() {
         for (node, b) in nodes.chunks_exact_mut(NODE_ROWS).zip(&before) {
-            for c in 0..CHUNK / 4 {
-                node[FLUENCE][c] += (node[FLUENCE][c] - b[c]) * tail;
-            }
+            node[FLUENCE] = node[FLUENCE] + (node[FLUENCE] - *b) * tail;
         }
         if stop.is_none() {
             stats.energy_multiple += previous * tail as f64;
@@ -962,15 +1048,6 @@ fn tail_factor(ratio: f64) -> f32 {
         true => (ratio / (1.0 - ratio)) as f32,
         false => 0.0,
     }
-}
-
-/// Up to CHUNK coefficients as one row of lanes, the rest zero.
-fn lanes(values: &[f32]) -> Row {
-    let mut row = ZERO_ROW;
-    for (c, v) in values.iter().enumerate() {
-        row[c / 4][c % 4] = *v;
-    }
-    row
 }
 
 /// What a transport works with: the medium, the SH band count, and the energy of the unscattered
@@ -1027,10 +1104,9 @@ impl Lattice {
             bands,
             medium: self.medium,
         };
-        let add = |f_ms: &mut [f32], (c0, width): (usize, usize), fluence: &[Row]| {
+        let add = |f_ms: &mut [f32], (c0, width): (usize, usize), fluence: &[Chunk]| {
             for (f, row) in f_ms.chunks_exact_mut(coeffs).zip(fluence) {
-                let lanes = row.iter().flat_map(|v| v.to_array());
-                for (out, value) in f[c0..c0 + width].iter_mut().zip(lanes) {
+                for (out, value) in f[c0..c0 + width].iter_mut().zip(row.values()) {
                     *out += value;
                 }
             }
@@ -1039,13 +1115,14 @@ impl Lattice {
         // carries no more than it must; the operator is the same for every coefficient, so the
         // other chunks run exactly as many generations.
         let drive = |(c0, width)| Drive::Environment { c0, width };
-        let (head, stats) = transport_chunk(&self.links, &first, drive((0, 1)), None);
+        let (head, stats) = transport_chunk::<f32>(&self.links, &first, drive((0, 1)), None);
         let stop = Stop {
             generations: stats.generations,
             ratio: stats.ratio,
         };
-        add(f_ms, (0, 1), &head);
-        drop(head);
+        for (f, dc) in f_ms.chunks_exact_mut(coeffs).zip(head) {
+            f[0] += dc;
+        }
         let rest: Vec<(usize, usize)> = (1..coeffs)
             .step_by(CHUNK)
             .map(|c0| (c0, CHUNK.min(coeffs - c0)))
@@ -1055,9 +1132,9 @@ impl Lattice {
             false => rayon::current_num_threads(),
         };
         for group in rest.chunks(in_flight) {
-            let parts: Vec<Vec<Row>> = group
+            let parts: Vec<Vec<Chunk>> = group
                 .par_iter()
-                .map(|&c| transport_chunk(&self.links, &first, drive(c), Some(stop)).0)
+                .map(|&c| transport_chunk::<Chunk>(&self.links, &first, drive(c), Some(stop)).0)
                 .collect();
             for (&c, fluence) in group.iter().zip(&parts) {
                 add(f_ms, c, fluence);
@@ -1082,8 +1159,7 @@ impl Lattice {
             bands: 1,
             medium: self.medium,
         };
-        let (fluence, _) = transport_chunk(&self.links, &first, Drive::Emission(emission), None);
-        fluence.iter().map(|row| row[0].x).collect()
+        transport_chunk::<f32>(&self.links, &first, Drive::Emission(emission), None).0
     }
 }
 

@@ -95,8 +95,9 @@ impl MemoryEstimate {
                     true => 1,
                     false => threads as u64,
                 };
-                let transport = (links + in_flight * transport_bytes(voxels, d, reflecting))
-                    .saturating_sub(brick_bytes as u64);
+                let transport = (links
+                    + in_flight * transport_bytes(voxels, d, reflecting, TRANSPORT_ROW_BYTES))
+                .saturating_sub(brick_bytes as u64);
                 one + far + build.max(transport)
             }
         };
@@ -211,6 +212,8 @@ const LINK_RECORD_BYTES: u64 = 24;
 const LINK_PLACE_BYTES: u64 = 4;
 /// Bytes of a row of a chunk's transport state: `lattice::CHUNK` f32 lanes.
 const TRANSPORT_ROW_BYTES: u64 = lattice::CHUNK as u64 * 4;
+/// Bytes of a row of a sun's transport state: its one f32.
+const SUN_TRANSPORT_ROW_BYTES: u64 = 4;
 /// Bytes per node of the fit's mass-matrix row: its weight, and 27 slots and weights.
 const FIT_ROW_BYTES: u64 = 8 + 27 * (4 + 8);
 /// Bytes per node of one column's conjugate-gradient solve: ten f64 vectors.
@@ -219,9 +222,9 @@ const FIT_SOLVE_BYTES: u64 = 10 * 8;
 /// One transport's state beside the links: per node its fluence, emission and next emission and
 /// the fluence before the last generation (for the tail), and per reflecting cell a buffer per
 /// pair of opposite directions.
-fn transport_bytes(voxels: usize, directions: usize, reflecting: f64) -> u64 {
+fn transport_bytes(voxels: usize, directions: usize, reflecting: f64, row_bytes: u64) -> u64 {
     let rows = 4.0 + reflecting * (directions / 2) as f64;
-    (rows * voxels as f64) as u64 * TRANSPORT_ROW_BYTES
+    (rows * voxels as f64) as u64 * row_bytes
 }
 
 /// Working memory of one sun's multiple-scattering solve on a lattice of `directions` over
@@ -230,7 +233,13 @@ fn transport_bytes(voxels: usize, directions: usize, reflecting: f64) -> u64 {
 pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f64) -> u64 {
     let links = transfer_voxels as u64 * directions as u64 * LINK_RECORD_BYTES;
     let build = transfer_voxels as u64 * directions as u64 * LINK_PLACE_BYTES;
-    links + build.max(transport_bytes(transfer_voxels, directions, reflecting))
+    let transport = transport_bytes(
+        transfer_voxels,
+        directions,
+        reflecting,
+        SUN_TRANSPORT_ROW_BYTES,
+    );
+    links + build.max(transport)
 }
 
 /// Above this many transfer voxels (by [`TransferLayout::estimate_len`]) a plan estimates the
