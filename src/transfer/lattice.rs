@@ -678,16 +678,17 @@ struct Segment {
 /// once per link, so two samples per voxel cost little and resolve a cell's density profile.
 const SEGMENT_STEP_VOXELS: f32 = 0.5;
 
-/// (1 − e^(−t))/t: the share of light emitted uniformly along a sub-step of optical depth t that
-/// leaves it.
-fn leaving(t: f32) -> f32 {
+/// e^(−t) and (1 − e^(−t))/t, the share of light emitted uniformly along a sub-step of optical
+/// depth t that leaves it, from one `exp_m1`.
+fn through_and_leaving(t: f32) -> (f32, f32) {
     // Below this, the series 1 − t/2 is exact in f32 while the quotient loses digits.
     const SERIES_BELOW: f32 = 1e-4;
-    if t < SERIES_BELOW {
-        1.0 - 0.5 * t
-    } else {
-        -(-t).exp_m1() / t
-    }
+    let m = (-t).exp_m1();
+    let leaving = match t < SERIES_BELOW {
+        true => 1.0 - 0.5 * t,
+        false => -m / t,
+    };
+    (1.0 + m, leaving)
 }
 
 /// Marches the segment from index point `a` to `b` (world length `length`; the node is its
@@ -721,33 +722,29 @@ fn segment_pair(
 /// light emitted along it, in proportion to the density as collisions are, escapes past its end
 /// (ε) and crosses the node (η).
 fn segment(rho: &[f32], length: f32, depth_per_density: f32) -> Segment {
-    let steps = rho.len();
-    let mut taus = [0f32; MAX_SEGMENT_STEPS];
-    for (t, r) in taus.iter_mut().zip(rho) {
-        *t = depth_per_density * r;
-    }
-    let taus = &taus[..steps];
-    // Optical depth from the start to the end of each sub-step; the node ends sub-step steps/2 − 1.
-    let mut ends = [0f32; MAX_SEGMENT_STEPS];
-    let mut tau = 0.0f32;
-    for (e, t) in ends.iter_mut().zip(taus) {
-        tau += t;
-        *e = tau;
-    }
-    let node = steps / 2;
-    let half = ends[node - 1];
-    // Emission in sub-step i, weighted by ρ_i: the share escaping past the end and, upstream of
-    // the node, the share crossing it.
+    let depth = |r: &f32| depth_per_density * r;
+    // The whole depth, and the depth to the node at the end of sub-step steps/2 − 1.
+    let node = rho.len() / 2;
+    let tau: f32 = rho.iter().map(depth).sum();
+    let half: f32 = rho[..node].iter().map(depth).sum();
+    // Emission in sub-step i, weighted by ρ_i: the share escaping past the end, e^(−(τ − end_i)),
+    // and upstream of the node the share crossing it, e^(−(half − end_i)): products of the
+    // sub-steps' own transmittances downstream, from the end back, one exp_m1 a sub-step.
     let (mut weight, mut escape, mut crossing) = (0.0f32, 0.0f32, 0.0f32);
-    for (i, ((&r, &t), &end)) in rho.iter().zip(taus).zip(&ends).enumerate() {
-        if r <= 0.0 {
-            continue;
+    let (mut to_end, mut to_node) = (1.0f32, 1.0f32);
+    for (i, r) in rho.iter().enumerate().rev() {
+        let (through, leaving) = through_and_leaving(depth(r));
+        if *r > 0.0 {
+            let out = r * leaving;
+            weight += r;
+            escape += out * to_end;
+            if i < node {
+                crossing += out * to_node;
+            }
         }
-        let out = r * leaving(t);
-        weight += r;
-        escape += out * (-(tau - end)).exp();
+        to_end *= through;
         if i < node {
-            crossing += out * (-(half - end)).exp();
+            to_node *= through;
         }
     }
     let (escape, crossing) = if weight > 0.0 {
