@@ -73,6 +73,9 @@ pub struct LightReport {
     pub lattice_seconds: f64,
     /// Bytes held by the suns' shadow volumes and fluences.
     pub bytes: u64,
+    /// The suns' lattice: its nodes and its cells' edge in density voxels (0 without one).
+    pub lattice_nodes: usize,
+    pub lattice_edge: i32,
     /// Building the density's bricks for this render (0 when built before or not built).
     pub brick_seconds: f64,
 }
@@ -389,11 +392,11 @@ impl Scene {
                 light
             })
             .collect();
-        report.bytes = lights.iter().map(|l| l.memory_bytes()).sum::<u64>()
-            + lights
-                .iter()
-                .find_map(|l| l.multiple.as_ref())
-                .map_or(0, |m| m.layout.memory_bytes() as u64);
+        report.bytes = lights.iter().map(|l| l.memory_bytes()).sum();
+        if let Some(m) = lights.iter().find_map(|l| l.multiple.as_ref()) {
+            report.bytes += m.layout.memory_bytes() as u64;
+            (report.lattice_nodes, report.lattice_edge) = (m.layout.len(), m.layout.k);
+        }
         (lights, report)
     }
 

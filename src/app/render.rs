@@ -593,6 +593,8 @@ fn transfer(
     stats["sun_shadow_seconds"] = json!(suns.shadow_seconds);
     stats["sun_lattice_seconds"] = json!(suns.lattice_seconds);
     stats["sun_bytes"] = json!(suns.bytes);
+    stats["sun_lattice_nodes"] = json!(suns.lattice_nodes);
+    stats["sun_lattice_edge"] = json!(suns.lattice_edge);
     stats["march_seconds"] = json!(report.march.as_secs_f64());
     stats["rays"] = json!(march.rays);
     stats["samples_taken"] = json!(march.samples_taken);
