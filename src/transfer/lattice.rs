@@ -402,10 +402,13 @@ fn build_links(
         let end = (start + LINK_BLOCK).min(n);
         let block: Vec<[Link; MAX_DIRECTIONS]> = layout.voxels()[start..end]
             .par_iter()
-            .map(|&v| {
-                let mut acc = field.sampler();
-                cell_links(&mut acc, layout.position(v), k, &dirs, &lengths, medium)
-            })
+            .map_init(
+                || (field.sampler(), Box::new(SegmentScratch::new())),
+                |(acc, scratch), &v| {
+                    let x = layout.position(v);
+                    cell_links(acc, scratch, x, k, &dirs, &lengths, medium)
+                },
+            )
             .collect();
         sweeps
             .par_iter_mut()
@@ -509,6 +512,7 @@ fn lines(layout: &TransferLayout, off: IVec3) -> (Sweep, Vec<u32>) {
 /// that couple them (module doc). The links' `node` is left for the sweep to set.
 fn cell_links(
     acc: &mut BrickSampler,
+    scratch: &mut SegmentScratch,
     x: Vec3,
     k: i32,
     dirs: &Directions,
@@ -521,7 +525,8 @@ fn cell_links(
         let o = dirs.opposite[j];
         if o > j {
             let half = off.as_vec3() * (k as f32 / 2.0);
-            let [there, back] = segment_pair(acc, x - half, x + half, length, medium.sigma_t);
+            let [there, back] =
+                segment_pair(acc, scratch, x - half, x + half, length, medium.sigma_t);
             (segments[j], segments[o]) = (Some(there), Some(back));
         }
     }
@@ -691,12 +696,30 @@ fn through_and_leaving(t: f32) -> (f32, f32) {
     (1.0 + m, leaving)
 }
 
+/// A segment march's sub-steps: their densities, and each one's e^(−t) and (1 − e^(−t))/t
+/// ([`through_and_leaving`]). Held by a thread across the cells it links, so a march fills only
+/// the sub-steps it takes.
+struct SegmentScratch {
+    rho: [f32; MAX_SEGMENT_STEPS],
+    exits: [(f32, f32); MAX_SEGMENT_STEPS],
+}
+
+impl SegmentScratch {
+    fn new() -> SegmentScratch {
+        SegmentScratch {
+            rho: [0.0; MAX_SEGMENT_STEPS],
+            exits: [(0.0, 0.0); MAX_SEGMENT_STEPS],
+        }
+    }
+}
+
 /// Marches the segment from index point `a` to `b` (world length `length`; the node is its
 /// midpoint), the density constant over each sub-step, and integrates exactly over that profile
-/// both ways: `[a → b, b → a]`. A direction and its opposite cross the same density, so one
-/// march serves both links.
+/// both ways: `[a → b, b → a]`. A direction and its opposite cross the same sub-steps, so one
+/// march and one set of sub-step terms serve both links.
 fn segment_pair(
     acc: &mut BrickSampler,
+    scratch: &mut SegmentScratch,
     a: Vec3,
     b: Vec3,
     length: f32,
@@ -704,24 +727,26 @@ fn segment_pair(
 ) -> [Segment; 2] {
     let pairs = ((b - a).length() / (2.0 * SEGMENT_STEP_VOXELS)).ceil() as usize;
     let steps = (2 * pairs.max(1)).min(MAX_SEGMENT_STEPS);
-    let dl = length / steps as f32;
-    let mut rho = [0f32; MAX_SEGMENT_STEPS];
-    for (i, r) in rho.iter_mut().enumerate().take(steps) {
+    let depth_per_density = sigma_t * length / steps as f32;
+    let rho = &mut scratch.rho[..steps];
+    let exits = &mut scratch.exits[..steps];
+    for (i, (r, e)) in rho.iter_mut().zip(exits.iter_mut()).enumerate() {
         *r = acc
             .sample(a + (b - a) * ((i as f32 + 0.5) / steps as f32))
             .max(0.0);
+        *e = through_and_leaving(depth_per_density * *r);
     }
-    let rho = &mut rho[..steps];
-    let forward = segment(rho, length, sigma_t * dl);
+    let forward = segment(rho, exits, length, depth_per_density);
     rho.reverse();
-    [forward, segment(rho, length, sigma_t * dl)]
+    exits.reverse();
+    [forward, segment(rho, exits, length, depth_per_density)]
 }
 
 /// A segment of world length `length` through sub-steps of densities `rho` (optical depth
-/// `rho·depth_per_density` each), its node at the midpoint: how it transmits, and what of the
-/// light emitted along it, in proportion to the density as collisions are, escapes past its end
-/// (ε) and crosses the node (η).
-fn segment(rho: &[f32], length: f32, depth_per_density: f32) -> Segment {
+/// `rho·depth_per_density` each, whose e^(−t) and leaving shares are `exits`), its node at the
+/// midpoint: how it transmits, and what of the light emitted along it, in proportion to the
+/// density as collisions are, escapes past its end (ε) and crosses the node (η).
+fn segment(rho: &[f32], exits: &[(f32, f32)], length: f32, depth_per_density: f32) -> Segment {
     let depth = |r: &f32| depth_per_density * r;
     // The whole depth, and the depth to the node at the end of sub-step steps/2 − 1.
     let node = rho.len() / 2;
@@ -729,11 +754,10 @@ fn segment(rho: &[f32], length: f32, depth_per_density: f32) -> Segment {
     let half: f32 = rho[..node].iter().map(depth).sum();
     // Emission in sub-step i, weighted by ρ_i: the share escaping past the end, e^(−(τ − end_i)),
     // and upstream of the node the share crossing it, e^(−(half − end_i)): products of the
-    // sub-steps' own transmittances downstream, from the end back, one exp_m1 a sub-step.
+    // sub-steps' own transmittances downstream, from the end back.
     let (mut weight, mut escape, mut crossing) = (0.0f32, 0.0f32, 0.0f32);
     let (mut to_end, mut to_node) = (1.0f32, 1.0f32);
-    for (i, r) in rho.iter().enumerate().rev() {
-        let (through, leaving) = through_and_leaving(depth(r));
+    for (i, (r, &(through, leaving))) in rho.iter().zip(exits).enumerate().rev() {
         if *r > 0.0 {
             let out = r * leaving;
             weight += r;
