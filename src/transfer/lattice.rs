@@ -391,11 +391,20 @@ fn build_links(
         .map(|off| (off.as_vec3() * k as f32 * scale).length())
         .collect();
     // The lines of every direction first, and where each cell's link goes in them.
-    let (mut sweeps, places): (Vec<Sweep>, Vec<Vec<u32>>) = dirs
-        .offsets
+    // A direction and its opposite share their lines, so one sort lays out both.
+    let opposites: Vec<(usize, usize)> = (0..d)
+        .filter_map(|j| (dirs.opposite[j] > j).then_some((j, dirs.opposite[j])))
+        .collect();
+    let mut laid: Vec<Option<(Sweep, Vec<u32>)>> = (0..d).map(|_| None).collect();
+    let built: Vec<[(Sweep, Vec<u32>); 2]> = opposites
         .par_iter()
-        .map(|off| lines(layout, *off))
-        .unzip();
+        .map(|&(j, _)| lines(layout, dirs.offsets[j]))
+        .collect();
+    for (&(j, o), [there, back]) in opposites.iter().zip(built) {
+        (laid[j], laid[o]) = (Some(there), Some(back));
+    }
+    // Every direction has its opposite among them (`Directions::new`).
+    let (mut sweeps, places): (Vec<Sweep>, Vec<Vec<u32>>) = laid.into_iter().flatten().unzip();
     // Then each cell's links, a block of cells at a time, written straight to their places.
     let mut reflects = vec![false; n];
     for start in (0..n).step_by(LINK_BLOCK) {
@@ -464,11 +473,11 @@ fn pairs(opposite: &[usize]) -> Vec<usize> {
 /// The most lattice directions there are (26).
 const MAX_DIRECTIONS: usize = 26;
 
-/// The lines of the layout along `off` ([`Sweep`]), their links holding only the cells' slots,
-/// and each cell's place among them.
-fn lines(layout: &TransferLayout, off: IVec3) -> (Sweep, Vec<u32>) {
+/// The lines of the layout along `off` and along −`off` ([`Sweep`]), their links holding only the
+/// cells' slots, and each cell's place among them. The two directions have the same lines, each
+/// run the other way.
+fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
     let voxels = layout.voxels();
-    let n = voxels.len();
     // A cell's line is named by the point where it crosses the plane through the origin normal to
     // an axis the direction moves along, and the cell's place on it by the steps t from there.
     let axis = (0..3).find(|&a| off[a] != 0).unwrap_or(0);
@@ -486,15 +495,36 @@ fn lines(layout: &TransferLayout, off: IVec3) -> (Sweep, Vec<u32>) {
         })
         .collect();
     order.sort_unstable();
+    let there = sweep_of(&order);
+    // The same lines, each run reversed: −off's order.
+    let mut start = 0;
+    while start < order.len() {
+        let end = start
+            + order[start..]
+                .iter()
+                .take_while(|o| same_line(o, &order[start]))
+                .count();
+        order[start..end].reverse();
+        start = end;
+    }
+    [there, sweep_of(&order)]
+}
+
+/// Whether two cells of [`lines`]' order lie on one line (their keys but t agree).
+fn same_line(a: &([i32; 4], u32), b: &([i32; 4], u32)) -> bool {
+    a.0[..3] == b.0[..3]
+}
+
+/// A sweep over cells in line order (`order`: each line's key, t and a cell's slot, lines
+/// contiguous), and each cell's place in it.
+fn sweep_of(order: &[([i32; 4], u32)]) -> (Sweep, Vec<u32>) {
+    let n = order.len();
     let mut place = vec![0u32; n];
     let mut links = Vec::with_capacity(n);
     let mut tasks = vec![0];
-    let mut previous = None;
-    for (i, &([x, y, z, _], s)) in order.iter().enumerate() {
+    for (i, &(_, s)) in order.iter().enumerate() {
         place[s as usize] = i as u32;
-        let key = IVec3::new(x, y, z);
-        let start = previous != Some(key);
-        previous = Some(key);
+        let start = i == 0 || !same_line(&order[i - 1], &order[i]);
         if start && i - tasks[tasks.len() - 1] >= TASK_LINKS {
             tasks.push(i);
         }

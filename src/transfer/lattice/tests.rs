@@ -193,8 +193,12 @@ fn each_line_passes_light_to_the_next_active_cell_along_it() {
         }
         None
     };
-    for off in Directions::new(LatticeKind::All).offsets {
-        let (sweep, place) = lines(&layout, off);
+    // Each direction's lines come with its opposite's: both are checked.
+    let laid = Directions::new(LatticeKind::All)
+        .offsets
+        .into_iter()
+        .flat_map(|off| lines(&layout, off).into_iter().zip([off, -off]));
+    for ((sweep, place), off) in laid {
         let slots: Vec<u32> = sweep.links.iter().map(|l| l.node & !LINE_START).collect();
         let mut seen = vec![false; n];
         for (i, &s) in slots.iter().enumerate() {
