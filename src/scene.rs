@@ -410,7 +410,12 @@ impl Scene {
                 kind,
                 self.medium.sigma_t,
             );
-            Arc::new(TransferLayout::build(&self.field.grid, k))
+            // On the transfer's own cells the suns' nodes are the transfer's: copied, not laid
+            // out again from every active voxel.
+            Arc::new(match k == transfer.layout.k {
+                true => transfer.layout.clone(),
+                false => TransferLayout::build(&self.field.grid, k),
+            })
         })
         .clone()
     }

@@ -153,3 +153,37 @@ fn dry_run_counts_the_shadow_volumes_and_the_budget_refuses_them() {
     );
     assert!(!dir.path().join("x.png").exists());
 }
+
+#[test]
+fn a_suns_multiple_scattering_is_solved_on_cells_half_the_transfers() {
+    let dir = tempfile::tempdir().unwrap();
+    let lattice = |out: &std::process::Output| {
+        assert!(out.status.success(), "{}", stderr(out));
+        let stats: serde_json::Value =
+            serde_json::from_str(String::from_utf8_lossy(&out.stdout).trim()).unwrap();
+        let n = |key: &str| stats[key].as_u64().unwrap();
+        (
+            n("sun_lattice_edge"),
+            n("sun_lattice_nodes"),
+            n("transfer_voxels"),
+        )
+    };
+    // The quick bake's cells are 4 voxels: the sky's sun is solved on cells of 3, more of them.
+    let (edge, nodes, transfer) = lattice(&render(dir.path(), "a.exr", &["--stats"]));
+    assert_eq!(edge, 3);
+    assert!(nodes > transfer, "{nodes} against {transfer}");
+    // Cells of 3 are not refined further: the suns' nodes are the transfer's.
+    let input = fixture("cloud.vdb");
+    let args = ["render", input.to_str().unwrap(), "-o", "b.exr", "--stats"];
+    let quick = ["--bands", "3", "--scale", "3", "--samples", "64"];
+    let out = vscatter_in(dir.path(), &[&args[..], &QUICK[..], &quick[..]].concat());
+    let (edge, nodes, transfer) = lattice(&out);
+    assert_eq!((edge, nodes), (3, transfer));
+    // Without a sun there is no lattice of theirs.
+    let out = render(
+        dir.path(),
+        "c.exr",
+        &["--stats", "--env", "sky", "--no-extract-sun"],
+    );
+    assert_eq!(lattice(&out).0, 0);
+}
