@@ -174,12 +174,7 @@ impl<'a> SunRadiance<'a> {
     /// Moves the weights gathered in the current cell of the suns' lattice into the sum.
     fn flush(&self, sum: &mut SunSum) {
         if let (Some(m), Some(slots)) = (&self.multiple, sum.cell.slots) {
-            for (&slot, &w) in slots.iter().zip(&sum.weights) {
-                let node = &m.nodes[slot as usize];
-                for (out, v) in sum.indirect.iter_mut().zip(node) {
-                    *out += w * v;
-                }
-            }
+            add_corners(&mut sum.indirect, &slots, &sum.weights, m.nodes, 0);
         }
         sum.weights = [0.0; 8];
     }
@@ -326,6 +321,23 @@ impl Cell {
     }
 }
 
+/// Adds Σ_n w[n]·RGB to `out`, RGB the channels `from..from + 3` of the record of corner n.
+#[inline]
+fn add_corners<const N: usize>(
+    out: &mut [f32; 3],
+    slots: &[u32; 8],
+    w: &[f32; 8],
+    nodes: &[[f32; N]],
+    from: usize,
+) {
+    for (&slot, &w) in slots.iter().zip(w) {
+        let node = &nodes[slot as usize][from..from + 3];
+        for (o, v) in out.iter_mut().zip(node) {
+            *o += w * v;
+        }
+    }
+}
+
 /// The trilinear weights of a cell's eight corners at fractions `f`, corner n having x = bit 2,
 /// y = bit 1, z = bit 0 ([`TransferLayout::cell`]).
 #[inline]
@@ -397,13 +409,9 @@ impl<'a> TransferRadiance<'a> {
     /// Moves the weights gathered in the current cell into the radiance sum.
     fn flush(&self, sum: &mut CellSum) {
         if let Some(slots) = sum.cell.slots {
-            for ((&slot, &wd), &wi) in slots.iter().zip(&sum.direct).zip(&sum.indirect) {
-                let node = &self.nodes[slot as usize];
-                for ch in 0..3 {
-                    sum.radiance[0][ch] += wd * node[ch];
-                    sum.radiance[1][ch] += wi * node[3 + ch];
-                }
-            }
+            let [direct, indirect] = &mut sum.radiance;
+            add_corners(direct, &slots, &sum.direct, self.nodes, 0);
+            add_corners(indirect, &slots, &sum.indirect, self.nodes, 3);
         }
         sum.direct = [0.0; 8];
         sum.indirect = [0.0; 8];

@@ -292,6 +292,26 @@ impl Directions {
     pub fn is_empty(&self) -> bool {
         self.offsets.is_empty()
     }
+
+    /// Each direction with its opposite, `(j, o)` with j < o: a pair shares its lines, its cells'
+    /// segments and its reflected light.
+    fn opposite_pairs(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        self.opposite
+            .iter()
+            .enumerate()
+            .filter_map(|(j, &o)| (j < o).then_some((j, o)))
+    }
+
+    /// Per direction, from what each of [`Directions::opposite_pairs`] gave its two directions
+    /// (`[along j, along o]`, in the pairs' order).
+    fn spread<T>(&self, pairs: impl IntoIterator<Item = [T; 2]>) -> Vec<T> {
+        let mut out: Vec<Option<T>> = (0..self.len()).map(|_| None).collect();
+        for ((j, o), [along_j, along_o]) in self.opposite_pairs().zip(pairs) {
+            (out[j], out[o]) = (Some(along_j), Some(along_o));
+        }
+        // Every direction has its opposite among them (`Directions::new`).
+        out.into_iter().flatten().collect()
+    }
 }
 
 /// One cell's segment along one direction: how it transmits, emits and accumulates fluence. Per
@@ -392,19 +412,12 @@ fn build_links(
         .collect();
     // The lines of every direction first, and where each cell's link goes in them.
     // A direction and its opposite share their lines, so one sort lays out both.
-    let opposites: Vec<(usize, usize)> = (0..d)
-        .filter_map(|j| (dirs.opposite[j] > j).then_some((j, dirs.opposite[j])))
-        .collect();
-    let mut laid: Vec<Option<(Sweep, Vec<u32>)>> = (0..d).map(|_| None).collect();
-    let built: Vec<[(Sweep, Vec<u32>); 2]> = opposites
+    let firsts: Vec<usize> = dirs.opposite_pairs().map(|(j, _)| j).collect();
+    let laid: Vec<[(Sweep, Vec<u32>); 2]> = firsts
         .par_iter()
-        .map(|&(j, _)| lines(layout, dirs.offsets[j]))
+        .map(|&j| lines(layout, dirs.offsets[j]))
         .collect();
-    for (&(j, o), [there, back]) in opposites.iter().zip(built) {
-        (laid[j], laid[o]) = (Some(there), Some(back));
-    }
-    // Every direction has its opposite among them (`Directions::new`).
-    let (mut sweeps, places): (Vec<Sweep>, Vec<Vec<u32>>) = laid.into_iter().flatten().unzip();
+    let (mut sweeps, places): (Vec<Sweep>, Vec<Vec<u32>>) = dirs.spread(laid).into_iter().unzip();
     // Then each cell's links, a block of cells at a time, written straight to their places.
     let mut reflects = vec![false; n];
     for start in (0..n).step_by(LINK_BLOCK) {
@@ -449,7 +462,7 @@ fn build_links(
         .collect();
     Links {
         inflow: inflow(&dirs, &lengths, bands),
-        pair: pairs(&dirs.opposite),
+        pair: pairs(&dirs),
         reflecting,
         reflecting_cells,
         parallel_sweeps: n >= PARALLEL_SWEEP_LINKS,
@@ -457,17 +470,9 @@ fn build_links(
     }
 }
 
-/// Numbers each pair of opposite directions (`opposite[j]` is −d_j's index): the pair's buffer.
-fn pairs(opposite: &[usize]) -> Vec<usize> {
-    let mut pair = vec![0; opposite.len()];
-    let mut count = 0;
-    for (j, &o) in opposite.iter().enumerate() {
-        if j < o {
-            (pair[j], pair[o]) = (count, count);
-            count += 1;
-        }
-    }
-    pair
+/// Numbers each pair of opposite directions: the pair's buffer.
+fn pairs(dirs: &Directions) -> Vec<usize> {
+    dirs.spread((0..).map(|count| [count, count]))
 }
 
 /// The most lattice directions there are (26).
@@ -550,18 +555,10 @@ fn cell_links(
     medium: Medium,
 ) -> [Link; MAX_DIRECTIONS] {
     let d = dirs.len();
-    let mut segments: Vec<Option<Segment>> = (0..d).map(|_| None).collect();
-    for (j, (off, &length)) in dirs.offsets.iter().zip(lengths).enumerate() {
-        let o = dirs.opposite[j];
-        if o > j {
-            let half = off.as_vec3() * (k as f32 / 2.0);
-            let [there, back] =
-                segment_pair(acc, scratch, x - half, x + half, length, medium.sigma_t);
-            (segments[j], segments[o]) = (Some(there), Some(back));
-        }
-    }
-    // Every direction has its opposite among them (`Directions::new`).
-    let segments: Vec<Segment> = segments.into_iter().flatten().collect();
+    let segments = dirs.spread(dirs.opposite_pairs().map(|(j, _)| {
+        let half = dirs.offsets[j].as_vec3() * (k as f32 / 2.0);
+        segment_pair(acc, scratch, x - half, x + half, lengths[j], medium.sigma_t)
+    }));
     let lambda: Vec<f64> = segments
         .iter()
         .zip(&dirs.offsets)
