@@ -455,7 +455,8 @@ impl Scene {
             trace.spp,
             background,
             progress,
-            |sample, st| tracer.trace(sample, st),
+            || (),
+            |sample, st, _| tracer.trace(sample, st),
             consume,
         );
         (out, stats)

@@ -270,7 +270,8 @@ mod tests {
             background,
             &indicatif::ProgressBar::hidden(),
             0..cam.height,
-            |s, st: &mut PathStats| tracer.trace(s, st),
+            || (),
+            |s, st: &mut PathStats, _| tracer.trace(s, st),
         );
         assert_eq!(stats.paths, 12 * 8 * spp as u64);
         frame

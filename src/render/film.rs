@@ -83,20 +83,21 @@ pub struct Frame {
 
 /// Renders rows `rows` of `camera`'s image (the whole frame: `0..camera.height`) with `spp`
 /// samples (at least 1) per pixel, calling `trace` for each camera ray with a per-tile statistics
-/// accumulator; `background` (`None`: alpha only) is added behind each ray's transmittance.
-/// `progress` counts the whole frame's tiles, advances by one per finished tile and is cleared
-/// with the last row.
-pub fn render_rows<St, F>(
+/// accumulator and a scratch made by `scratch`, which a thread keeps across its tiles;
+/// `background` (`None`: alpha only) is added behind each ray's transmittance. `progress` counts
+/// the whole frame's tiles, advances by one per finished tile and is cleared with the last row.
+pub fn render_rows<St, Sc, F>(
     camera: &Camera,
     spp: u32,
     background: Option<Background>,
     progress: &ProgressBar,
     rows: Range<u32>,
+    scratch: impl Fn() -> Sc + Sync + Send,
     trace: F,
 ) -> (Frame, St)
 where
     St: Default + std::ops::AddAssign + Send,
-    F: Fn(CameraSample, &mut St) -> RayResult + Sync,
+    F: Fn(CameraSample, &mut St, &mut Sc) -> RayResult + Sync,
 {
     let w = camera.width;
     let rows = rows.start.min(camera.height)..rows.end.min(camera.height);
@@ -151,13 +152,14 @@ where
                 .enumerate()
                 .map(move |(t, rows)| (t as u32 * TILE, y0, rows))
         })
-        .map(|(x0, y0, rows)| {
+        .map_init(&scratch, |scratch, (x0, y0, rows)| {
             let mut stats = St::default();
+            let mut trace = |sample, stats: &mut St| trace(sample, stats, scratch);
             for (dy, row) in rows.into_iter().enumerate() {
                 let y = y0 + dy as u32;
                 for (dx, rgba) in row.rgba.iter_mut().enumerate() {
                     let x = x0 + dx as u32;
-                    let p = pixel(camera, spp, background, x, y, &trace, &mut stats);
+                    let p = pixel(camera, spp, background, x, y, &mut trace, &mut stats);
                     *rgba = p.rgba;
                     row.direct[dx] = p.direct;
                     row.indirect[dx] = p.indirect;
@@ -180,24 +182,25 @@ where
 }
 
 /// Hands `consume` `camera`'s image row by row ([`Rows`]), each band it asks for rendered by
-/// [`render_rows`] with `trace`. Returns what `consume` made, the statistics of every row it asked
-/// for (summed in the order asked), and the time spent rendering them.
-pub fn stream_rows<St, F, R>(
+/// [`render_rows`] with `scratch` and `trace`. Returns what `consume` made, the statistics of every
+/// row it asked for (summed in the order asked), and the time spent rendering them.
+pub fn stream_rows<St, Sc, F, R>(
     camera: &Camera,
     spp: u32,
     background: Option<Background>,
     progress: &ProgressBar,
+    scratch: impl Fn() -> Sc + Sync + Send,
     trace: F,
     consume: impl FnOnce(&mut Rows) -> R,
 ) -> (R, St, Duration)
 where
     St: Default + std::ops::AddAssign + Send,
-    F: Fn(CameraSample, &mut St) -> RayResult + Sync,
+    F: Fn(CameraSample, &mut St, &mut Sc) -> RayResult + Sync,
 {
     let (mut stats, mut time) = (St::default(), Duration::ZERO);
     let out = consume(&mut |rows| {
         let t = Instant::now();
-        let (frame, s) = render_rows(camera, spp, background, progress, rows, &trace);
+        let (frame, s) = render_rows(camera, spp, background, progress, rows, &scratch, &trace);
         stats += s;
         time += t.elapsed();
         frame
@@ -221,18 +224,15 @@ struct Pixel {
     depth: f32,
 }
 
-fn pixel<St, F>(
+fn pixel<St>(
     camera: &Camera,
     spp: u32,
     background: Option<Background>,
     x: u32,
     y: u32,
-    trace: &F,
+    trace: &mut impl FnMut(CameraSample, &mut St) -> RayResult,
     stats: &mut St,
-) -> Pixel
-where
-    F: Fn(CameraSample, &mut St) -> RayResult,
-{
+) -> Pixel {
     let mut px = Pixel {
         rgba: [0.0; 4],
         direct: [0.0; 3],

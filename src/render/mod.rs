@@ -149,7 +149,6 @@ pub fn render_volume<R>(
                 }),
         ),
         march::SunRadiance::new(
-            field,
             suns.iter()
                 .zip(&lighting.suns)
                 .map(|(light, sun)| (&light.shadow, sun.irradiance)),

@@ -15,10 +15,10 @@ struct Pointwise<F>(F);
 
 impl<F: Fn(Vec3) -> [[f32; 3]; 2] + Sync> InScatter for Pointwise<F> {
     type Sum = [[f32; 3]; 2];
-    fn start(&self, _span: Vec3) -> Self::Sum {
+    fn begin(&self) -> Self::Sum {
         [[0.0; 3]; 2]
     }
-    fn add(&self, step: &Step, sum: &mut Self::Sum) {
+    fn add(&self, step: &Step, sum: &mut Self::Sum, _: &mut BrickSampler) {
         let (ls, c) = ((self.0)(step.p), step.weight());
         for part in 0..2 {
             for ch in 0..3 {
@@ -26,8 +26,8 @@ impl<F: Fn(Vec3) -> [[f32; 3]; 2] + Sync> InScatter for Pointwise<F> {
             }
         }
     }
-    fn total(&self, sum: Self::Sum) -> [[f32; 3]; 2] {
-        sum
+    fn total(&self, sum: &mut Self::Sum) -> [[f32; 3]; 2] {
+        std::mem::take(sum)
     }
 }
 
@@ -51,12 +51,24 @@ fn smooth() -> Pointwise<impl Fn(Vec3) -> [[f32; 3]; 2] + Sync> {
 fn step_at(p: Vec3, rho: f32, c: f32) -> Step {
     Step {
         p,
+        span: Vec3::X,
         rho,
         scatter: c,
         front: 1.0,
         tau: f32::INFINITY,
         tr: 0.0,
     }
+}
+
+/// `src`'s light from `steps`, summed as one ray's.
+fn ray_sum<S: InScatter>(src: &S, steps: &[Step]) -> [[f32; 3]; 2] {
+    let field = DensityField::new(SparseGrid::new(Transform::default(), 0.0));
+    let mut sampler = field.sampler();
+    let mut sum = src.begin();
+    for step in steps {
+        src.add(step, &mut sum, &mut sampler);
+    }
+    src.total(&mut sum)
 }
 
 fn medium(sigma_t: f32, albedo: f32) -> Medium {
@@ -348,6 +360,7 @@ fn a_degenerate_step_ends_instead_of_hanging() {
             -Vec3::Z,
             0.5,
             &settings,
+            &mut scene.scratch(),
             &mut stats,
         );
         assert_eq!(r.transmittance, 1.0);
@@ -373,11 +386,7 @@ fn transfer_radiance_interpolates_slots() {
         .collect();
     let radiance = Radiance::new(&direct, &vec![[0.25; 3]; layout.len()]);
     let src = TransferRadiance::new(&layout, &radiance, None);
-    let at = |q: Vec3| {
-        let mut sum = src.start(Vec3::X);
-        src.add(&step_at(q, 1.0, 1.0), &mut sum);
-        src.total(sum)
-    };
+    let at = |q: Vec3| ray_sum(&src, &[step_at(q, 1.0, 1.0)]);
     // The layout's own trilinear weights, direct red.
     let want = |q: Vec3| -> f32 {
         layout
@@ -410,11 +419,7 @@ fn transfer_radiance_interpolates_slots() {
         (points[1], 2.0),
         (points[0], 1.0),
     ];
-    let mut sum = src.start(Vec3::X);
-    steps
-        .iter()
-        .for_each(|&(q, c)| src.add(&step_at(q, 1.0, c), &mut sum));
-    let [d, i] = src.total(sum);
+    let [d, i] = ray_sum(&src, &steps.map(|(q, c)| step_at(q, 1.0, c)));
     let expect: f32 = steps.iter().map(|&(q, c)| c * want(q)).sum();
     assert!(
         (d[0] - expect).abs() < 1e-5 * expect,
@@ -441,7 +446,7 @@ fn the_suns_multiple_scattering_is_interpolated_between_their_own_nodes() {
         })
         .collect();
     nodes.push([0.0; 3]);
-    let src = SunRadiance::new(&field, [], Some((&layout, &nodes)));
+    let src = SunRadiance::new([], Some((&layout, &nodes)));
     let want = |q: Vec3, ch: usize| -> f32 {
         layout
             .corners(q)
@@ -455,11 +460,7 @@ fn the_suns_multiple_scattering_is_interpolated_between_their_own_nodes() {
         (Vec3::new(2.0, 20.5, 70.25), 2.0),
         (Vec3::new(33.0, 20.5, 70.25), 1.0),
     ];
-    let mut sum = src.start(Vec3::X);
-    for &(q, c) in &steps {
-        src.add(&step_at(q, 1.0, c), &mut sum);
-    }
-    let [direct, indirect] = src.total(sum);
+    let [direct, indirect] = ray_sum(&src, &steps.map(|(q, c)| step_at(q, 1.0, c)));
     assert_eq!(direct, [0.0; 3]);
     for (ch, got) in indirect.into_iter().enumerate() {
         let expect: f32 = steps.iter().map(|&(q, c)| c * want(q, ch)).sum();
@@ -506,9 +507,7 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
         );
         let plain = TransferRadiance::new(&layout, &radiance, None);
         let at = |src: &TransferRadiance, q: Vec3| {
-            let mut sum = src.start(Vec3::X);
-            src.add(&step_at(q, field.grid.sample_index(q), 1.0), &mut sum);
-            src.total(sum)
+            ray_sum(src, &[step_at(q, field.grid.sample_index(q), 1.0)])
         };
         let mut plain_error = 0.0f32;
         for q in [
@@ -618,7 +617,7 @@ fn a_thick_sunlit_step_is_split_so_its_light_falls_within_it() {
     let field = DensityField::new(block_box(IVec3::new(32, 32, 24)));
     let (sigma_t, albedo, e) = (2.0f32, 0.8f32, [1.0f32, 2.0, 4.0]);
     let shadow = ShadowVolume::build(&field, sigma_t, Vec3::Z);
-    let source = SunRadiance::new(&field, [(&shadow, e)], None);
+    let source = SunRadiance::new([(&shadow, e)], None);
     let scene = Scene::new(&field, medium(sigma_t, albedo), &source, None);
     // Half a voxel of plateau above z = 22.5, then the face's ramp: ∫ρ = 1.
     let tau0 = sigma_t * 1.0;
@@ -630,6 +629,7 @@ fn a_thick_sunlit_step_is_split_so_its_light_falls_within_it() {
             -Vec3::Z,
             0.5,
             &MarchSettings::default(),
+            &mut scene.scratch(),
             &mut stats,
         );
         for (got, e) in ray.direct.iter().zip(e) {
@@ -637,5 +637,46 @@ fn a_thick_sunlit_step_is_split_so_its_light_falls_within_it() {
             assert!((got / want - 1.0).abs() < 0.02, "x {x}: {got} vs {want}");
         }
         assert_eq!(ray.indirect, [0.0; 3]);
+    }
+}
+
+#[test]
+fn a_threads_scratch_carries_nothing_from_one_ray_to_the_next() {
+    // Rays marched one after another with one scratch, as a thread marches its tiles, give
+    // bit for bit what each gives with a fresh one: the caches kept (the last block, shadow brick
+    // and lattice cell) only save lookups, and every ray's sums start empty.
+    let field = DensityField::new(block_box(IVec3::new(32, 32, 24)));
+    let shadow = ShadowVolume::build(&field, 1.0, Vec3::new(0.3, 0.2, 1.0).normalize());
+    let layout = TransferLayout::build(&field.grid, 3);
+    let mut nodes: Vec<[f32; 3]> = layout
+        .voxels()
+        .iter()
+        .map(|v| [v.x as f32, v.y as f32, 1.0])
+        .collect();
+    nodes.push([0.0; 3]);
+    let source = SunRadiance::new([(&shadow, [1.0, 2.0, 3.0])], Some((&layout, &nodes)));
+    let scene = Scene::new(&field, medium(1.0, 0.8), &source, None);
+    let settings = MarchSettings::default();
+    let rays = [
+        (Vec3::new(4.0, 17.5, 40.0), -Vec3::Z),
+        (Vec3::new(4.5, 17.0, 40.0), -Vec3::Z),
+        (Vec3::new(-10.0, 16.0, 12.0), Vec3::X),
+        (Vec3::new(4.0, 17.5, 40.0), -Vec3::Z),
+    ];
+    let mut shared = scene.scratch();
+    let mut stats = MarchStats::default();
+    for (origin, dir) in rays {
+        let kept = march_ray(&scene, origin, dir, 0.3, &settings, &mut shared, &mut stats);
+        let fresh = march_ray(
+            &scene,
+            origin,
+            dir,
+            0.3,
+            &settings,
+            &mut scene.scratch(),
+            &mut stats,
+        );
+        assert_eq!(kept, fresh);
+        assert!(kept.direct[0] > 0.0 && kept.indirect[0] > 0.0, "{kept:?}");
     }
 }
