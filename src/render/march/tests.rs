@@ -435,7 +435,6 @@ fn the_suns_multiple_scattering_is_interpolated_between_their_own_nodes() {
     // step adds weight()·(trilinear radiance) to `indirect`, nothing to `direct`, and steps that
     // leave a cell and come back to it lose no weight.
     let g = unit_tile(Transform::default(), 1.0);
-    let field = DensityField::new(g.clone());
     let layout = TransferLayout::build(&g, 3);
     let mut nodes: Vec<[f32; 3]> = layout
         .voxels()
