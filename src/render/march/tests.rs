@@ -679,3 +679,20 @@ fn a_threads_scratch_carries_nothing_from_one_ray_to_the_next() {
         assert!(kept.direct[0] > 0.0 && kept.indirect[0] > 0.0, "{kept:?}");
     }
 }
+
+#[test]
+fn a_suns_depth_along_a_step_follows_a_parabola_and_never_overshoots() {
+    // Through three points of τ(s) = 0.5 + s + 2s² (a depth growing into a lit surface's ramp)
+    // the parabola is τ itself; where the depth jumps (a shadow's edge between the midpoint and
+    // the end) it stays within the three values.
+    let exact = |s: f32| 0.5 + s + 2.0 * s * s;
+    let depth = sun_depth_along(exact(0.0), exact(0.5), exact(1.0));
+    for s in [0.0, 0.1, 0.25, 0.5, 0.8, 1.0] {
+        assert!((depth(s) - exact(s)).abs() < 1e-5, "{s}");
+    }
+    let edge = sun_depth_along(0.0, 0.0, 4.0);
+    for s in [0.0, 0.2, 0.4, 0.6, 0.9, 1.0] {
+        assert!((0.0..=4.0).contains(&edge(s)), "{s}: {}", edge(s));
+    }
+    assert_eq!((edge(0.25), edge(1.0)), (0.0, 4.0));
+}
