@@ -51,7 +51,7 @@ pub struct Scene {
     /// The suns' shadow volumes and lattice solves, kept while a sun does not move: another
     /// camera, or another environment with the same sun, reuses them.
     sun_lights: Mutex<Vec<Arc<SunLight>>>,
-    /// The suns' lattice's nodes ([`sunlight::sun_k`]), laid out once for every sun and render
+    /// The suns' lattice's nodes ([`sunlight::sun_layout`]), laid out once for every sun and render
     /// of this transfer.
     sun_layout: Mutex<Option<Arc<TransferLayout>>>,
 }
@@ -407,18 +407,12 @@ impl Scene {
     fn sun_layout(&self, transfer: &Transfer, kind: LatticeKind) -> Arc<TransferLayout> {
         let mut held = self.sun_layout.lock().unwrap_or_else(|e| e.into_inner());
         held.get_or_insert_with(|| {
-            let k = sunlight::sun_k(
+            Arc::new(sunlight::sun_layout(
                 &self.field.grid,
                 &transfer.layout,
                 kind,
                 self.medium.sigma_t,
-            );
-            // On the transfer's own cells the suns' nodes are the transfer's: copied, not laid
-            // out again from every active voxel.
-            Arc::new(match k == transfer.layout.k {
-                true => transfer.layout.clone(),
-                false => TransferLayout::build(&self.field.grid, k),
-            })
+            ))
         })
         .clone()
     }

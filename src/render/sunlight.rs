@@ -27,42 +27,59 @@ use crate::transfer::{Medium, TransferLayout, PHASE};
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
 use crate::volume::{DensityField, SparseGrid};
 
-/// The smallest cell edge, in density voxels, the suns' lattice is refined to. A sun's first
-/// scatterings lie within an optical depth of the lit surface, and cells five or six optical
-/// depths thick spread them too deep and read them back too dark; one sun on a black sky, σt 1,
-/// albedo 0.9, against the path tracer (256×144): cloud / torus 19.9 / 29.3 % at an edge of 6,
-/// 15.5 / 19.9 % at 5, 14.4 / 14.9 % at 4, **10.0 / 11.8 %** at 3 and 10.3 / 12.6 % at 2 (for
-/// 3.4 times the nodes of 3).
+/// The cell edge, in density voxels, the suns' lattice takes where its working memory allows
+/// ([`MAX_SUN_SOLVE_BYTES`]): the density's own voxels. A cell larger than a voxel is partly
+/// empty wherever a surface crosses it, and its node then reads the light of the wrong depth:
+/// a slab of albedo 1 lit by one sun, against the path tracer, is −20.0, +16.2 and +18.1 % off
+/// at cells of 3 for heights of 30, 31 and 32 voxels, −18.9, +8.0 and −18.9 % at 2, and −0.5,
+/// −0.6 and −0.6 % at 1 (σt 1, docs/accuracy.md#suns).
+const VOXEL_SUN_K: i32 = 1;
+
+/// The smallest cell edge, in density voxels, the suns' lattice is refined to where the
+/// density's own voxels are too many. A sun's first scatterings lie within an optical depth of
+/// the lit surface, and cells five or six optical depths thick spread them too deep and read
+/// them back too dark; one sun on a black sky, σt 1, albedo 0.9, against the path tracer
+/// (256×144): cloud / torus 19.9 / 29.3 % at an edge of 6, 15.5 / 19.9 % at 5, 14.4 / 14.9 % at
+/// 4, **10.0 / 11.8 %** at 3 and 10.3 / 12.6 % at 2 (for 3.4 times the nodes of 3); 6.0 / 6.9 %
+/// at the density's voxels ([`VOXEL_SUN_K`]).
 const MIN_SUN_K: i32 = 3;
 
-/// The most working memory a refined suns' lattice may take ([`sun_solve_bytes`]): past it a
-/// volume's suns are solved on the transfer's own cells. Eight times the transfer's nodes, each
-/// with its 26 links, is about 30 bytes per active voxel where the density takes 4; this bound
-/// keeps a render of a cloud of tens of millions of voxels from growing by gigabytes, and is a
-/// fixed figure so a render looks the same on every machine.
-const MAX_REFINED_SOLVE_BYTES: u64 = 512 << 20;
+/// The most working memory a suns' lattice finer than the transfer's may take
+/// ([`sun_solve_bytes`]); past it a volume's suns are solved on coarser cells. The finest cells
+/// cost the most: the fixture cloud's 223 749 voxel nodes take 1.4 s and 197 MiB per sun where its
+/// cells of 3 take 0.06 s and 33 MiB. This bound keeps a render of a cloud of tens of millions of
+/// voxels from growing by gigabytes, and is a fixed figure so a render looks the same on every
+/// machine.
+const MAX_SUN_SOLVE_BYTES: u64 = 512 << 20;
 
-/// The cell edge of the suns' lattice for `transfer`: half of its edge, not below [`MIN_SUN_K`],
-/// nor past [`MAX_REFINED_SOLVE_BYTES`] — reckoned from the transfer's own nodes, 2³ times as
-/// many (fewer where the volume's surface is large against it), so a volume of billions of
-/// voxels is answered at once.
-pub fn sun_k(
+/// The suns' lattice for `transfer`: on the density's own voxels where their solve fits
+/// [`MAX_SUN_SOLVE_BYTES`], else on cells of half the transfer's edge (not below [`MIN_SUN_K`])
+/// where theirs does, else the transfer's own. A finer layout is laid out only once it may fit —
+/// reckoned from the active voxels, each a node at least, and from the transfer's nodes, k³
+/// times as many per cell at most — so a volume of billions of voxels is answered at once.
+pub fn sun_layout(
     density: &SparseGrid,
     transfer: &TransferLayout,
     kind: LatticeKind,
     sigma_t: f32,
-) -> i32 {
+) -> TransferLayout {
     let k = transfer.k;
-    let fine = ((k + 1) / 2).max(MIN_SUN_K).min(k);
-    if fine == k {
-        return k;
+    let means = lattice::DensityMeans::new(density);
+    let solve_bytes = |nodes: u64, fine: i32| {
+        let reflecting = means.reflecting_share(sigma_t, fine);
+        sun_solve_bytes(nodes as usize, kind.directions(), reflecting)
+    };
+    if k > VOXEL_SUN_K && solve_bytes(density.active_voxels(), VOXEL_SUN_K) <= MAX_SUN_SOLVE_BYTES {
+        let voxels = TransferLayout::build(density, VOXEL_SUN_K);
+        if solve_bytes(voxels.len() as u64, VOXEL_SUN_K) <= MAX_SUN_SOLVE_BYTES {
+            return voxels;
+        }
     }
-    let nodes = transfer.len() as f64 * (k as f64 / fine as f64).powi(3);
-    let reflecting = lattice::DensityMeans::new(density).reflecting_share(sigma_t, fine);
-    match sun_solve_bytes(nodes as usize, kind.directions(), reflecting) <= MAX_REFINED_SOLVE_BYTES
-    {
-        true => fine,
-        false => k,
+    let refined = ((k + 1) / 2).max(MIN_SUN_K).min(k);
+    let nodes = transfer.len() as f64 * (k as f64 / refined as f64).powi(3);
+    match refined < k && solve_bytes(nodes as u64, refined) <= MAX_SUN_SOLVE_BYTES {
+        true => TransferLayout::build(density, refined),
+        false => transfer.clone(),
     }
 }
 
@@ -206,28 +223,34 @@ mod tests {
     use super::*;
     use crate::volume::grid::{block_box, TileLevel, Transform};
 
-    #[test]
-    fn the_suns_lattice_halves_the_transfers_cells_down_to_three_voxels() {
-        let g = block_box(IVec3::splat(48));
-        let k = |k| sun_k(&g, &TransferLayout::build(&g, k), LatticeKind::All, 1.0);
-        assert_eq!([2, 3, 4, 5, 6, 7, 8, 12].map(k), [2, 3, 3, 3, 3, 4, 4, 6]);
+    /// The edge of the suns' lattice for `g` at transfer edge `k`.
+    fn sun_k(g: &SparseGrid, k: i32) -> i32 {
+        sun_layout(g, &TransferLayout::build(g, k), LatticeKind::All, 1.0).k
     }
 
     #[test]
-    fn a_volume_too_large_to_refine_keeps_the_transfers_cells() {
-        // 3³ node tiles, a box of 384³ voxels: 66³ nodes at an edge of 6, 2.3 M at 3 (1.4 GiB of
-        // links); a single block of them refines.
+    fn the_suns_lattice_takes_the_density_voxels_where_they_fit() {
+        let g = block_box(IVec3::splat(48));
+        assert_eq!([1, 2, 3, 6, 12].map(|k| sun_k(&g, k)), [1; 5]);
+    }
+
+    #[test]
+    fn a_volume_too_large_for_voxel_cells_halves_the_transfers_cells_or_keeps_them() {
+        // 3³ node tiles, a box of 384³ voxels: 57 M voxel nodes; 2.3 M at an edge of 3 (1.4 GiB of
+        // links) and 305 000 at 6, so the suns keep the transfer's cells; at an edge of 12 the
+        // transfer has 38 000 and its half-edge cells (6) fit.
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         for n in 0..27 {
             let origin = IVec3::new(n / 9, (n / 3) % 3, n % 3) * 128;
             g.insert_tile(TileLevel::Node, origin, 1.0);
         }
+        assert_eq!([6, 12].map(|k| sun_k(&g, k)), [6, 6]);
+        // A 128³ node tile: 2.1 M voxel nodes are too many; its cells of 3 (85 000) fit.
+        let mut one = SparseGrid::new(Transform::default(), 0.0);
+        one.insert_tile(TileLevel::Node, IVec3::ZERO, 1.0);
         assert_eq!(
-            sun_k(&g, &TransferLayout::build(&g, 6), LatticeKind::All, 1.0),
-            6
+            [2, 3, 4, 5, 6, 7, 8, 12].map(|k| sun_k(&one, k)),
+            [2, 3, 3, 3, 3, 4, 4, 6]
         );
-        let small = block_box(IVec3::splat(8));
-        let layout = TransferLayout::build(&small, 6);
-        assert_eq!(sun_k(&small, &layout, LatticeKind::All, 1.0), 3);
     }
 }
