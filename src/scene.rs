@@ -17,8 +17,8 @@ use crate::render::sunlight::{self, SunLattice, SunLight};
 use crate::render::{self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows};
 use crate::transfer::cache::{self, Cache, Header, Origin, Source};
 use crate::transfer::lattice::{DensityMeans, LatticeKind};
-use crate::transfer::memory::BakePlan;
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
+use crate::transfer::memory::{BakePlan, MAX_LAID_OUT_VOXELS};
 use crate::transfer::packing::Precision;
 use crate::transfer::{BakeSettings, BakeStats, Medium, Transfer, TransferLayout, TransferLight};
 use crate::volume::{load_density, DensityField};
@@ -300,40 +300,57 @@ impl Scene {
     /// Bytes the suns' light will hold beyond the transfer, estimated before it is built: a
     /// shadow volume and a fluence per node of the suns' lattice for each sun not kept from an
     /// earlier render, the lattice's layout, and the radiance the march reads from its nodes.
-    pub fn sun_plan(&self, lighting: &Lighting) -> u64 {
+    /// `bake`: before the transfer is baked, the bake it will come from (see
+    /// [`Self::planned_sun_layout`]).
+    pub fn sun_plan(&self, lighting: &Lighting, bake: Option<&BakeConfig>) -> u64 {
         // The shadow volume's estimate walks the density's blocks: only for suns to build.
         let new_suns = self.new_suns(lighting) as u64;
         if new_suns == 0 {
             return 0;
         }
         let shadow = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid);
-        let lattice = match &self.transfer {
-            Some(t) => t.lattice.map_or(0, |kind| {
-                let layout = self.sun_layout(t, kind);
-                layout.memory_bytes() as u64
-                    + layout.len() as u64 * (4 * new_suns + SUN_RECORD_BYTES)
-            }),
-            None => 0,
-        };
+        let lattice = self.planned_sun_layout(bake).map_or(0, |(layout, _)| {
+            layout.memory_bytes() as u64 + layout.len() as u64 * (4 * new_suns + SUN_RECORD_BYTES)
+        });
         new_suns * shadow + lattice
     }
 
     /// The working memory of the new suns' multiple-scattering solve, while it runs (one at a
     /// time, on links built once): 0 when every sun is kept or the transfer has no lattice.
-    pub fn sun_solve_plan(&self, lighting: &Lighting) -> u64 {
-        match &self.transfer {
-            Some(t) if self.new_suns(lighting) > 0 => t.lattice.map_or(0, |kind| {
-                let layout = self.sun_layout(t, kind);
-                let reflecting = DensityMeans::new(&self.field.grid)
-                    .reflecting_share(self.medium.sigma_t, layout.k);
-                crate::transfer::memory::sun_solve_bytes(
-                    layout.len(),
-                    kind.directions(),
-                    reflecting,
-                )
-            }),
-            _ => 0,
+    /// `bake`: as for [`Self::sun_plan`].
+    pub fn sun_solve_plan(&self, lighting: &Lighting, bake: Option<&BakeConfig>) -> u64 {
+        if self.new_suns(lighting) == 0 {
+            return 0;
         }
+        self.planned_sun_layout(bake).map_or(0, |(layout, kind)| {
+            let reflecting =
+                DensityMeans::new(&self.field.grid).reflecting_share(self.medium.sigma_t, layout.k);
+            crate::transfer::memory::sun_solve_bytes(layout.len(), kind.directions(), reflecting)
+        })
+    }
+
+    /// The suns' lattice and its kind: the baked transfer's, or, before a bake, the one the bake
+    /// `bake` will make, from the transfer layout it will lay out; `None` without a lattice, or
+    /// before a bake of more transfer voxels than a plan lays out ([`MAX_LAID_OUT_VOXELS`]),
+    /// whose suns are solved on its own cells and counted with it.
+    fn planned_sun_layout(
+        &self,
+        bake: Option<&BakeConfig>,
+    ) -> Option<(Arc<TransferLayout>, LatticeKind)> {
+        if let Some(t) = &self.transfer {
+            return t
+                .lattice
+                .map(|kind| (self.sun_layout(&t.layout, kind), kind));
+        }
+        let settings = &bake?.settings;
+        let grid = &self.field.grid;
+        if settings.single_scatter
+            || TransferLayout::estimate_len(grid, settings.scale) > MAX_LAID_OUT_VOXELS
+        {
+            return None;
+        }
+        let layout = TransferLayout::build(grid, settings.scale);
+        Some((self.sun_layout(&layout, settings.lattice), settings.lattice))
     }
 
     /// How many of `lighting.suns` have no light kept from an earlier render.
@@ -371,7 +388,7 @@ impl Scene {
             .any(|s| kept_light(&kept, s.direction, medium).is_none());
         let lattice = transfer.lattice.filter(|_| new_suns).map(|kind| {
             let clock = Instant::now();
-            let layout = self.sun_layout(transfer, kind);
+            let layout = self.sun_layout(&transfer.layout, kind);
             let lattice = SunLattice::build(&self.field, layout, kind, medium);
             report.lattice_seconds += clock.elapsed().as_secs_f64();
             lattice
@@ -403,13 +420,13 @@ impl Scene {
         (lights, report)
     }
 
-    /// The suns' lattice's nodes for `transfer`, laid out on first use.
-    fn sun_layout(&self, transfer: &Transfer, kind: LatticeKind) -> Arc<TransferLayout> {
+    /// The suns' lattice's nodes for the transfer layout `transfer`, laid out on first use.
+    fn sun_layout(&self, transfer: &TransferLayout, kind: LatticeKind) -> Arc<TransferLayout> {
         let mut held = self.sun_layout.lock().unwrap_or_else(|e| e.into_inner());
         held.get_or_insert_with(|| {
             Arc::new(sunlight::sun_layout(
                 &self.field.grid,
-                &transfer.layout,
+                transfer,
                 kind,
                 self.medium.sigma_t,
             ))

@@ -538,7 +538,7 @@ fn transfer(
     if scene.transfer.is_none() {
         let clock = Instant::now();
         let Some(bake) = prepare_bake(scene, config, args.bake.dry_run, global)? else {
-            println!("{}", sun_plan(scene, view.lighting));
+            println!("{}", sun_plan(scene, view.lighting, Some(config)));
             return Ok(None);
         };
         if let Some(cache) = &args.cache {
@@ -555,13 +555,13 @@ fn transfer(
         scene.transfer.as_ref().map_or(0, |t| {
             t.layout.memory_bytes() + t.coefficient_bytes() + t.shape_bytes()
         }),
-        scene.sun_plan(view.lighting),
-        scene.sun_solve_plan(view.lighting),
+        scene.sun_plan(view.lighting, None),
+        scene.sun_solve_plan(view.lighting, None),
         memory::image_bytes(view.camera.width, view.camera.height, view.png),
     );
     if args.bake.dry_run {
         warn(&scene.warnings(Some(config.settings.scale)));
-        println!("{}", sun_plan(scene, view.lighting));
+        println!("{}", sun_plan(scene, view.lighting, None));
         println!("render: {}", estimate.describe());
         return Ok(None);
     }
@@ -602,11 +602,21 @@ fn transfer(
     Ok(Some(()))
 }
 
-/// What the suns will hold, for `--dry-run`: one line.
-fn sun_plan(scene: &Scene, lighting: &Lighting) -> String {
-    format!(
-        "{} suns: shadow volumes and fluences about {}",
-        lighting.suns.len(),
-        HumanBytes(scene.sun_plan(lighting))
-    )
+/// What the suns will hold, for `--dry-run`: one line; `bake`: the bake a VDB's transfer will
+/// come from, whose lattice the suns' solve is then planned on, and said.
+fn sun_plan(scene: &Scene, lighting: &Lighting, bake: Option<&BakeConfig>) -> String {
+    let held = HumanBytes(scene.sun_plan(lighting, bake));
+    let line = format!(
+        "{} suns: shadow volumes and fluences about {held}",
+        lighting.suns.len()
+    );
+    match bake.map(|b| scene.sun_solve_plan(lighting, Some(b))) {
+        Some(solve) if solve > 0 => {
+            format!(
+                "{line}; their lattice solve about {} while it runs",
+                HumanBytes(solve)
+            )
+        }
+        _ => line,
+    }
 }

@@ -127,6 +127,14 @@ fn dry_run_counts_the_shadow_volumes_and_the_budget_refuses_them() {
         stdout.contains("2 suns: shadow volumes and fluences about"),
         "{stdout}"
     );
+    // From a VDB the suns' lattice is planned on the transfer the bake will lay out: the
+    // cloud's 223 749 voxel nodes, 26 links of 24 bytes each, are over 130 MiB while they solve.
+    let solve = stdout
+        .split("their lattice solve about ")
+        .nth(1)
+        .and_then(|s| s.split(" MiB").next())
+        .and_then(|s| s.parse::<f64>().ok());
+    assert!(solve.is_some_and(|m| m > 130.0), "{stdout}");
     // From a cache (so the bake's own budget is not what refuses): the render's whole peak is
     // estimated, and refused. A PNG this small is one band of rows, held twice (44 bytes a pixel
     // each), and the 8-bit pixels (4): 48 × 27 × 92 = 119 232 B.
