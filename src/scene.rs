@@ -2,6 +2,7 @@
 //! bake its transfer when it has none, and render it — with the transfer or the path tracer —
 //! under a [`Lighting`]. `render`, and any other front end, calls these and nothing below them.
 
+use std::borrow::Cow;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -340,7 +341,7 @@ impl Scene {
         if let Some(t) = &self.transfer {
             return t
                 .lattice
-                .map(|kind| (self.sun_layout(&t.layout, kind), kind));
+                .map(|kind| (self.sun_layout(kind, || Cow::Borrowed(&t.layout)), kind));
         }
         let settings = &bake?.settings;
         let grid = &self.field.grid;
@@ -349,8 +350,9 @@ impl Scene {
         {
             return None;
         }
-        let layout = TransferLayout::build(grid, settings.scale);
-        Some((self.sun_layout(&layout, settings.lattice), settings.lattice))
+        let kind = settings.lattice;
+        let layout = || Cow::Owned(TransferLayout::build(grid, settings.scale));
+        Some((self.sun_layout(kind, layout), kind))
     }
 
     /// How many of `lighting.suns` have no light kept from an earlier render.
@@ -388,7 +390,7 @@ impl Scene {
             .any(|s| kept_light(&kept, s.direction, medium).is_none());
         let lattice = transfer.lattice.filter(|_| new_suns).map(|kind| {
             let clock = Instant::now();
-            let layout = self.sun_layout(&transfer.layout, kind);
+            let layout = self.sun_layout(kind, || Cow::Borrowed(&transfer.layout));
             let lattice = SunLattice::build(&self.field, layout, kind, medium);
             report.lattice_seconds += clock.elapsed().as_secs_f64();
             lattice
@@ -420,13 +422,18 @@ impl Scene {
         (lights, report)
     }
 
-    /// The suns' lattice's nodes for the transfer layout `transfer`, laid out on first use.
-    fn sun_layout(&self, transfer: &TransferLayout, kind: LatticeKind) -> Arc<TransferLayout> {
+    /// The suns' lattice's nodes for the transfer layout `transfer` gives, laid out on first use
+    /// (a plan's transfer layout is then laid out once, not once per estimate).
+    fn sun_layout<'t>(
+        &self,
+        kind: LatticeKind,
+        transfer: impl FnOnce() -> Cow<'t, TransferLayout>,
+    ) -> Arc<TransferLayout> {
         let mut held = self.sun_layout.lock().unwrap_or_else(|e| e.into_inner());
         held.get_or_insert_with(|| {
             Arc::new(sunlight::sun_layout(
                 &self.field.grid,
-                transfer,
+                &transfer(),
                 kind,
                 self.medium.sigma_t,
             ))
