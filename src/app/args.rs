@@ -300,8 +300,8 @@ pub struct RenderArgs {
     /// or a sequence of them, as a frame pattern (`cache.####.vtc`) or a glob.
     #[arg(value_name = "IN")]
     pub input: String,
-    /// The image to write: .exr (linear RGBA plus direct, indirect and depth layers) or .png; for
-    /// a sequence, a frame pattern (`img.####.exr`).
+    /// The image to write: .exr (linear RGBA; `--layers` adds direct, indirect and depth) or
+    /// .png; for a sequence, a frame pattern (`img.####.exr`).
     #[arg(short, long, value_name = "OUT")]
     pub output: PathBuf,
     /// Latlong environment (.exr or .hdr), or `sky` for the built-in sky; several, separated by
@@ -391,6 +391,10 @@ pub struct RenderArgs {
     /// Write EXR as half floats.
     #[arg(long)]
     pub exr_half: bool,
+    /// Add the EXR layers `direct.{R,G,B}`, `indirect.{R,G,B}` (single and multiple scattering)
+    /// and `depth.Z` to the RGBA.
+    #[arg(long)]
+    pub layers: bool,
     /// Keep the bake of a .vdb input in this .vtc cache, and reuse it while the source file and
     /// the bake options are unchanged.
     #[arg(long, value_name = "PATH")]
@@ -450,6 +454,12 @@ impl RenderArgs {
         if !matches!(ext.as_deref(), Some("exr" | "png")) {
             return Err(Error::usage(format!(
                 "{}: output must end in .exr or .png",
+                args.output.display()
+            )));
+        }
+        if ext.as_deref() == Some("png") && (args.layers || args.exr_half) {
+            return Err(Error::usage(format!(
+                "{}: --layers and --exr-half apply to an .exr output",
                 args.output.display()
             )));
         }

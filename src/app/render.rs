@@ -1,7 +1,7 @@
 //! `vscatter render`: volume in, image out — or a sequence in, images out. Flags are checked
 //! (output paths included) before any work; then each frame's scene is opened, baked if it has no
-//! transfer, and rendered with the transfer or the path tracer under each map; the EXR (RGBA plus
-//! direct, indirect and depth layers) or PNG is written atomically with a fingerprint of what made
+//! transfer, and rendered with the transfer or the path tracer under each map; the EXR (RGBA, and
+//! with `--layers` the direct, indirect and depth layers) or PNG is written atomically with a fingerprint of what made
 //! it, so a rerun of a sequence skips the images that are current.
 
 use std::path::{Path, PathBuf};
@@ -434,7 +434,7 @@ impl Job<'_> {
                         let t = Instant::now();
                         let frame = rows(r.start as u32..r.end as u32);
                         rendering += t.elapsed();
-                        Ok(frame.into_image())
+                        Ok(frame.into_image(args.layers))
                     },
                 );
                 writing = clock.elapsed();

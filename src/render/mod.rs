@@ -169,32 +169,36 @@ pub fn render_volume<R>(
 }
 
 impl Frame {
-    /// The frame as an image to write: RGBA (premultiplied, as [`ImageBuf`] expects) plus the
-    /// `direct.{R,G,B}`, `indirect.{R,G,B}` and `depth.Z` layers, which EXR keeps and PNG ignores.
-    pub fn into_image(self) -> ImageBuf {
+    /// The frame as an image to write: RGBA (premultiplied, as [`ImageBuf`] expects), plus, with
+    /// `layers`, the `direct.{R,G,B}`, `indirect.{R,G,B}` and `depth.Z` layers, which EXR keeps
+    /// and PNG ignores.
+    pub fn into_image(self, layers: bool) -> ImageBuf {
         // The buffers move over as they are: the EXR writer reads interleaved channels in place.
         let rgb = &["R", "G", "B"];
         ImageBuf {
             width: self.width as usize,
             height: self.height as usize,
             rgba: self.rgba,
-            layers: vec![
-                Layer {
-                    name: "direct",
-                    channels: rgb,
-                    values: self.direct.into_flattened(),
-                },
-                Layer {
-                    name: "indirect",
-                    channels: rgb,
-                    values: self.indirect.into_flattened(),
-                },
-                Layer {
-                    name: "depth",
-                    channels: &["Z"],
-                    values: self.depth,
-                },
-            ],
+            layers: match layers {
+                false => Vec::new(),
+                true => vec![
+                    Layer {
+                        name: "direct",
+                        channels: rgb,
+                        values: self.direct.into_flattened(),
+                    },
+                    Layer {
+                        name: "indirect",
+                        channels: rgb,
+                        values: self.indirect.into_flattened(),
+                    },
+                    Layer {
+                        name: "depth",
+                        channels: &["Z"],
+                        values: self.depth,
+                    },
+                ],
+            },
         }
     }
 }
@@ -338,7 +342,7 @@ mod tests {
         }
         let depth_at_centre = frame.depth[centre];
         assert!(depth_at_centre > 0.0);
-        let image = frame.into_image();
+        let image = frame.into_image(true);
         let names: Vec<(&str, &[&str])> =
             image.layers.iter().map(|l| (l.name, l.channels)).collect();
         let rgb: &[&str] = &["R", "G", "B"];

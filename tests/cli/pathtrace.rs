@@ -33,6 +33,7 @@ fn pathtrace_writes_the_same_layers_on_any_thread_count() {
                 "--threads",
                 threads,
                 "--stats",
+                "--layers",
             ],
         );
         assert!(o.status.success(), "{}", stderr(&o));

@@ -19,6 +19,7 @@ fn render_writes_an_exr_with_layers_and_a_png() {
         "--sigma-t",
         "20",
         "--stats",
+        "--layers",
     ];
     args.extend(QUICK_BAKE);
     let out = vscatter_in(dir.path(), &args);
@@ -92,6 +93,7 @@ fn render_writes_an_exr_with_layers_and_a_png() {
         "--res",
         "24x16",
         "--stats",
+        "--layers",
     ];
     let out = vscatter_in(dir.path(), &from_cache);
     assert!(out.status.success(), "{}", stderr(&out));
@@ -100,7 +102,19 @@ fn render_writes_an_exr_with_layers_and_a_png() {
     assert_eq!(stats["from_cache"], true);
     let read = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
     assert_eq!(read("cache.exr"), read("out.exr"));
-    for f in ["c.vtc", "cache.exr"] {
+    // Without --layers the EXR holds the RGBA alone.
+    let plain = ["render", "c.vtc", "-o", "plain.exr", "--res", "24x16"];
+    let out = vscatter_in(dir.path(), &plain);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let plain = exr::prelude::read_all_flat_layers_from_file(dir.path().join("plain.exr")).unwrap();
+    let names: Vec<String> = plain.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect();
+    assert_eq!(names, ["A", "B", "G", "R"]);
+    for f in ["c.vtc", "cache.exr", "plain.exr"] {
         std::fs::remove_file(dir.path().join(f)).unwrap();
     }
 
@@ -117,8 +131,9 @@ fn render_refuses_bad_flags_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let input = fixture("small_cloud.vdb");
     let input = input.to_str().unwrap();
-    let cases: [(&[&str], i32, &str); 7] = [
+    let cases: [(&[&str], i32, &str); 8] = [
         (&["render", input, "-o", "x.png", "--spp", "0"], 2, "--spp"),
+        (&["render", input, "-o", "x.png", "--layers"], 2, "--layers"),
         // Without --camera-pos too: the framing camera looks down −Z.
         (
             &["render", input, "-o", "x.png", "--up", "0,0,1"],

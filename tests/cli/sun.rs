@@ -61,7 +61,14 @@ fn mean_direct(path: &std::path::Path) -> f64 {
 fn a_sun_lights_the_direct_layer_and_light_means_what_vdb_render_means() {
     let dir = tempfile::tempdir().unwrap();
     // Black environment: all the light is the sun's.
-    let black = ["--env", "sky", "--env-scale", "0", "--single-scatter"];
+    let black = [
+        "--env",
+        "sky",
+        "--env-scale",
+        "0",
+        "--single-scatter",
+        "--layers",
+    ];
     let sun: Vec<&str> = black
         .iter()
         .copied()
