@@ -140,6 +140,25 @@ where
     })
 }
 
+/// Starts writing `file`'s dirty pages to the disk without waiting for them, so that the sync at
+/// the end of [`write_atomic`] finds most of a long, streamed file already written: the EXR writer
+/// calls it after each band. On the bench cloud's 1920×1080 render (29 MB) the final sync and
+/// rename took 27 ms of a 0.5 s render. Linux only (`sync_file_range`); elsewhere the final
+/// sync does all the work, as it always may.
+pub fn start_writeback(file: &File) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        // SAFETY: a plain system call on an open descriptor that `file` keeps alive; its result
+        // only tells whether writeback started, and the final sync reports any real failure.
+        unsafe {
+            libc::sync_file_range(file.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE);
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = file;
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

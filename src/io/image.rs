@@ -15,7 +15,7 @@ use exr::prelude::{f16, Compression, LayerAttributes, SmallVec};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::io::atomic::write_atomic;
+use crate::io::atomic::{start_writeback, write_atomic};
 
 /// Lines of an EXR compressed together before they are written: enough blocks to keep every core
 /// busy, few enough that the compressed batch stays a few megabytes.
@@ -329,6 +329,8 @@ fn write_exr(path: &Path, options: &WriteOptions, bands: Bands) -> Result<()> {
     // The bands' own error, kept apart from the writer's I/O errors.
     let mut failure: Option<Error> = None;
     let written = write_atomic(path, |w: &mut BufWriter<std::fs::File>| {
+        // The same open file, for starting each band's writeback while the writer holds `w`.
+        let file = w.get_ref().try_clone()?;
         exr::block::write(w, SmallVec::from_elem(header, 1), true, |meta, chunks| {
             let blocks: Vec<(usize, BlockIndex)> =
                 enumerate_ordered_header_block_indices(&meta.headers).collect();
@@ -372,6 +374,7 @@ fn write_exr(path: &Path, options: &WriteOptions, bands: Bands) -> Result<()> {
                     written = compressed;
                 }
                 flush(&mut written)?;
+                start_writeback(&file);
                 Ok(end)
             };
             let (mut band, mut y0, mut at) = (first, 0, 0);
