@@ -1,6 +1,6 @@
 //! The sparse transfer grid: transfer voxels at 1/K of the density resolution, allocated only where
-//! the density is active within a voxel's footprint plus a one-voxel apron, grouped in 4³ tiles in a
-//! `hashbrown` map. Per-voxel data (SH coefficients, radiance) lives in flat arrays indexed by the
+//! the density is active within a voxel's footprint plus a one-voxel apron, grouped in 4³ tiles
+//! found through a [`KeyIndex`]. Per-voxel data (SH coefficients, radiance) lives in flat arrays indexed by the
 //! voxel's slot; slots are numbered tile by tile, so each tile's coefficients are contiguous.
 //!
 //! Transfer voxel `a` sits at density index point `K·a` and its footprint is the density voxels
@@ -8,9 +8,9 @@
 //! eight transfer voxels around `p / K`; the apron makes all eight exist wherever density is active.
 
 use glam::{IVec3, Vec3};
-use hashbrown::HashMap;
 
 use crate::volume::grid::{corner, slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
+use crate::volume::keys::KeyIndex;
 
 /// log2 of a tile's edge in transfer voxels: 4³ = 64 voxels, one 64-bit occupancy word.
 pub const TILE_LOG2: i32 = 2;
@@ -34,8 +34,10 @@ const CELL_OFFSETS: [usize; 8] = {
 pub struct TransferLayout {
     /// Density voxels per transfer voxel along each axis.
     pub k: i32,
-    /// Per tile (key `voxel >> TILE_LOG2`), the slot of each of its 64 voxels or `EMPTY`.
-    tiles: HashMap<IVec3, Box<[u32; TILE_VOXELS]>>,
+    /// Per tile key (`voxel >> TILE_LOG2`), its index in `tile_slots`.
+    tiles: KeyIndex<u32>,
+    /// Per tile, the slot of each of its 64 voxels or `EMPTY`.
+    tile_slots: Vec<[u32; TILE_VOXELS]>,
     /// The transfer-voxel coordinate of every slot, tile by tile.
     voxels: Vec<IVec3>,
 }
@@ -137,15 +139,26 @@ impl TransferLayout {
         ordered.then(|| Self::index(k, voxels))
     }
 
+    /// Indexes `voxels`, which are in slot order: each tile's voxels one after another.
     fn index(k: i32, voxels: Vec<IVec3>) -> TransferLayout {
-        let mut tiles: HashMap<IVec3, Box<[u32; TILE_VOXELS]>> = HashMap::new();
+        let mut keys: Vec<(IVec3, u32)> = Vec::new();
+        let mut tile_slots: Vec<[u32; TILE_VOXELS]> = Vec::new();
         for (slot, v) in voxels.iter().enumerate() {
-            let tile = tiles
-                .entry(*v >> TILE_LOG2)
-                .or_insert_with(|| Box::new([EMPTY; TILE_VOXELS]));
-            tile[tile_local(*v)] = slot as u32;
+            let key = *v >> TILE_LOG2;
+            if keys.last().is_none_or(|&(last, _)| last != key) {
+                keys.push((key, tile_slots.len() as u32));
+                tile_slots.push([EMPTY; TILE_VOXELS]);
+            }
+            if let Some(tile) = tile_slots.last_mut() {
+                tile[tile_local(*v)] = slot as u32;
+            }
         }
-        TransferLayout { k, tiles, voxels }
+        TransferLayout {
+            k,
+            tiles: KeyIndex::new(keys),
+            tile_slots,
+            voxels,
+        }
     }
 
     /// Number of transfer voxels.
@@ -158,7 +171,7 @@ impl TransferLayout {
     }
 
     pub fn tile_count(&self) -> usize {
-        self.tiles.len()
+        self.tile_slots.len()
     }
 
     /// Transfer-voxel coordinates, by slot.
@@ -169,7 +182,7 @@ impl TransferLayout {
     /// The slot of transfer voxel `v`, if it exists.
     #[inline]
     pub fn slot(&self, v: IVec3) -> Option<usize> {
-        let s = self.tiles.get(&(v >> TILE_LOG2))?[tile_local(v)];
+        let s = self.tile_slots[self.tiles.get(v >> TILE_LOG2)? as usize][tile_local(v)];
         (s != EMPTY).then_some(s as usize)
     }
 
@@ -181,7 +194,7 @@ impl TransferLayout {
     pub fn cell(&self, b: IVec3, missing: u32) -> Option<[u32; 8]> {
         let mut slots = [EMPTY; 8];
         if (b & (TILE_DIM - 1)).cmplt(IVec3::splat(TILE_DIM - 1)).all() {
-            let tile = self.tiles.get(&(b >> TILE_LOG2))?;
+            let tile = &self.tile_slots[self.tiles.get(b >> TILE_LOG2)? as usize];
             let base = tile_local(b);
             for (n, s) in slots.iter_mut().enumerate() {
                 *s = tile[base + CELL_OFFSETS[n]];
@@ -204,8 +217,8 @@ impl TransferLayout {
 
     /// Bytes of the layout itself (not of the per-voxel data).
     pub fn memory_bytes(&self) -> usize {
-        self.tiles.capacity() * (std::mem::size_of::<(IVec3, Box<[u32; TILE_VOXELS]>)>() + 1)
-            + self.tiles.len() * TILE_VOXELS * 4
+        self.tiles.memory_bytes()
+            + self.tile_slots.capacity() * TILE_VOXELS * 4
             + self.voxels.capacity() * std::mem::size_of::<IVec3>()
     }
 

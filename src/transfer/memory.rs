@@ -246,7 +246,7 @@ pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f6
 /// bake instead of laying it out: listing them would take gigabytes and minutes, and a bake of so
 /// many needs tens of gigabytes (16 M voxels × 100 coefficients × 4 bytes × at least four copies).
 pub const MAX_LAID_OUT_VOXELS: u64 = 16_000_000;
-/// Bytes of layout per transfer voxel (its coordinate, its slot in a 4³ tile, the tile map's
+/// Bytes of layout per transfer voxel (its coordinate, its slot in a 4³ tile, the tile index's
 /// share), for a plan that estimates.
 const LAYOUT_BYTES_PER_VOXEL: u64 = 20;
 

@@ -24,6 +24,7 @@ use crate::volume::dense_box::DenseBox;
 use crate::volume::grid::{
     corner, corner_offsets, trilinear, Block, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2,
 };
+use crate::volume::keys::KeyIndex;
 use crate::volume::sampler::BlockSampler;
 
 /// Voxels along a brick edge: a leaf plus the apron it shares with its upper neighbours.
@@ -49,7 +50,7 @@ enum Entry {
 
 /// The bricks of one grid, built once per render (or per bake's T_ri) and shared by every ray.
 pub struct Bricks {
-    entries: HashMap<IVec3, Entry>,
+    entries: KeyIndex<Entry>,
     values: Vec<Brick>,
     /// 128³ tiles (key = voxel >> 7) and their values. A block whose 2×2×2 window lies inside one
     /// is uniform without an entry of its own: a node tile holds 4096 blocks, and sending their
@@ -66,7 +67,7 @@ impl Bricks {
     /// No bricks: every sample goes to the fallback sampler, which reads the same values.
     pub fn empty() -> Bricks {
         Bricks {
-            entries: HashMap::new(),
+            entries: KeyIndex::new(Vec::new()),
             values: Vec::new(),
             node_tiles: HashMap::new(),
             outside: None,
@@ -78,7 +79,7 @@ impl Bricks {
         // order (deterministic) and filled in parallel in place, so the build holds the bricks
         // once, never a copy of them.
         let (keys, uniform) = plan(grid);
-        let mut entries = HashMap::with_capacity(keys.len());
+        let mut entries = Vec::with_capacity(keys.len());
         let mut brick_keys = Vec::new();
         for (&key, u) in keys.iter().zip(&uniform) {
             let entry = match u {
@@ -88,8 +89,9 @@ impl Bricks {
                     Entry::Brick(brick_keys.len() as u32 - 1)
                 }
             };
-            entries.insert(key, entry);
+            entries.push((key, entry));
         }
+        let entries = KeyIndex::new(entries);
         let mut values = vec![[0.0; BRICK_VOXELS]; brick_keys.len()];
         values
             .par_iter_mut()
@@ -121,19 +123,16 @@ impl Bricks {
         self.node_tiles.get(&node).map(|&v| Entry::Uniform(v))
     }
 
-    /// Bytes held: the brick values and the entry map (key, value and a control byte per slot).
+    /// Bytes held: the brick values and the entries' index.
     pub fn memory_bytes(&self) -> usize {
-        bytes(self.values.capacity(), self.entries.capacity())
+        self.values.capacity() * std::mem::size_of::<Brick>() + self.entries.memory_bytes()
     }
 
     /// What [`Bricks::build`] will hold for `grid`, from its plan alone (no brick filled).
     pub fn estimate_bytes(grid: &SparseGrid) -> usize {
         let (keys, uniform) = plan(grid);
-        let entries: HashMap<IVec3, Entry> = HashMap::with_capacity(keys.len());
-        bytes(
-            uniform.iter().filter(|u| u.is_none()).count(),
-            entries.capacity(),
-        )
+        uniform.iter().filter(|u| u.is_none()).count() * std::mem::size_of::<Brick>()
+            + KeyIndex::<Entry>::bytes_for(&keys)
     }
 }
 
@@ -180,11 +179,6 @@ fn plan(grid: &SparseGrid) -> (Vec<IVec3>, Vec<Option<f32>>) {
 /// The eight blocks a brick at `key` reads: `key + {0,1}³`, ordered as [`corner`].
 fn window(grid: &SparseGrid, key: IVec3) -> [Block<'_>; 8] {
     std::array::from_fn(|n| grid.block(key + corner(n)))
-}
-
-/// Memory of `bricks` filled bricks and a map of `entries`.
-fn bytes(bricks: usize, entries: usize) -> usize {
-    bricks * std::mem::size_of::<Brick>() + entries * (std::mem::size_of::<(IVec3, Entry)>() + 1)
 }
 
 /// The value of eight blocks that are all the same constant, if they are.
@@ -279,7 +273,7 @@ impl<'a> BrickSampler<'a> {
         let key = i0 >> LEAF_LOG2;
         if key != self.key {
             self.key = key;
-            self.entry = self.bricks.entries.get(&key).copied();
+            self.entry = self.bricks.entries.get(key);
         }
     }
 
@@ -311,7 +305,7 @@ impl<'a> BrickSampler<'a> {
                     let (blo, bhi) = ((key << LEAF_LOG2).max(lo), ((key + 1) << LEAF_LOG2).min(hi));
                     if key != self.key {
                         self.key = key;
-                        self.entry = self.bricks.entries.get(&key).copied();
+                        self.entry = self.bricks.entries.get(key);
                     }
                     let run = (bhi.z - blo.z) as usize;
                     for x in blo.x..bhi.x {
@@ -450,7 +444,7 @@ mod tests {
         g.insert_leaf(IVec3::new(128, 0, 0), [u64::MAX; 8], [2.0; LEAF_VOXELS]);
         let bricks = Bricks::build(&g);
         let inside = IVec3::new(5, 7, 3);
-        assert!(!bricks.entries.contains_key(&inside));
+        assert_eq!(bricks.entries.get(inside), None);
         assert_eq!(bricks.in_node_tile(inside), Some(Entry::Uniform(0.75)));
         assert_eq!(bricks.in_node_tile(IVec3::new(15, 7, 3)), None);
         assert_eq!(bricks.in_node_tile(IVec3::new(16, 7, 3)), None);
@@ -477,8 +471,14 @@ mod tests {
         }
         let bricks = Bricks::build(&g);
         assert_eq!((bricks.entries.len(), bricks.values.len()), (125, 56));
-        assert_eq!(bricks.entries[&IVec3::ONE], Entry::Uniform(1.0));
-        assert!(matches!(bricks.entries[&IVec3::splat(2)], Entry::Brick(_)));
-        assert_eq!(bricks.entries[&IVec3::new(3, 0, -1)], Entry::Uniform(0.0));
+        assert_eq!(bricks.entries.get(IVec3::ONE), Some(Entry::Uniform(1.0)));
+        assert!(matches!(
+            bricks.entries.get(IVec3::splat(2)),
+            Some(Entry::Brick(_))
+        ));
+        assert_eq!(
+            bricks.entries.get(IVec3::new(3, 0, -1)),
+            Some(Entry::Uniform(0.0))
+        );
     }
 }

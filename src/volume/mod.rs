@@ -6,6 +6,7 @@ pub(crate) mod dda;
 mod dense_box;
 mod field;
 pub mod grid;
+pub(crate) mod keys;
 pub(crate) mod mip;
 mod sampler;
 pub mod shadow;

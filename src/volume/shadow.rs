@@ -47,6 +47,7 @@ use rayon::prelude::*;
 use crate::math::floor::floor_split;
 use crate::volume::bricks::BrickSampler;
 use crate::volume::grid::{SparseGrid, TileLevel, LEAF_LOG2};
+use crate::volume::keys::KeyIndex;
 use crate::volume::transmittance::OpticalDepth;
 use crate::volume::DensityField;
 
@@ -60,7 +61,8 @@ const BRICK_VOXELS: usize = DIM * DIM * DIM;
 const JUMP: i32 = 8;
 /// Block edge in voxels.
 const BLOCK: i32 = 1 << LEAF_LOG2;
-/// Bytes of one brick and its map entry (key, index, a control byte, at a load factor of ~7/8).
+/// Bytes of one brick and its share of the bricks' index ([`KeyIndex`]: a hash map's slot, which
+/// a dense table never exceeds).
 const BYTES_PER_BRICK: u64 = (BRICK_VOXELS * 4 + 24) as u64;
 
 /// Optical depth toward one sun over the occupied region.
@@ -74,7 +76,7 @@ pub struct ShadowVolume {
     u: Vec3,
     /// World length of that step.
     length: f32,
-    entries: HashMap<IVec3, u32>,
+    entries: KeyIndex<u32>,
     depths: Vec<[f32; BRICK_VOXELS]>,
 }
 
@@ -146,11 +148,12 @@ impl ShadowVolume {
     /// extinction `sigma_t` per unit density.
     pub fn build(field: &DensityField, sigma_t: f32, direction: Vec3) -> ShadowVolume {
         let keys = keys(&field.grid);
-        let entries: HashMap<IVec3, u32> = keys
-            .iter()
-            .enumerate()
-            .map(|(i, k)| (*k, i as u32))
-            .collect();
+        let entries = KeyIndex::new(
+            keys.iter()
+                .enumerate()
+                .map(|(i, k)| (*k, i as u32))
+                .collect(),
+        );
         let xf = &field.grid.transform;
         let v = direction * xf.scale.as_vec3().recip();
         let a = v.abs();
@@ -212,8 +215,8 @@ impl ShadowVolume {
             for &i in layers.get(&(m + other)).into_iter().flatten() {
                 let mut holder = keys[i as usize];
                 holder[axis] = m;
-                match volume.entries.get(&holder) {
-                    Some(&j) => copies.push((i, j)),
+                match volume.entries.get(holder) {
+                    Some(j) => copies.push((i, j)),
                     None => jobs.push((i, fill..=fill)),
                 }
             }
@@ -416,14 +419,14 @@ impl ShadowVolume {
         let key = cell >> LEAF_LOG2 as i32;
         if cursor.key != Some(key) {
             cursor.key = Some(key);
-            cursor.brick = self.entries.get(&key).copied();
+            cursor.brick = self.entries.get(key);
         }
         cursor.brick.map(|b| &self.depths[b as usize])
     }
 
     /// Bytes held.
     pub fn memory_bytes(&self) -> u64 {
-        self.depths.len() as u64 * BYTES_PER_BRICK
+        (self.depths.len() * BRICK_VOXELS * 4 + self.entries.memory_bytes()) as u64
     }
 
     /// The bytes [`ShadowVolume::build`] would hold for `grid`, without building it: exact for

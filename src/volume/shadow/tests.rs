@@ -175,7 +175,7 @@ fn a_voxel_whose_line_toward_the_light_meets_no_brick_is_lit_without_a_march() {
         for i in 0..3000u32 {
             let h = |s: u32| (crate::math::hash::hash_unit(i, s, 5, 1) * 120.0 - 12.0) as i32;
             let v = IVec3::new(h(0), h(1), h(2));
-            if vol.entries.contains_key(&(v >> LEAF_LOG2 as i32)) {
+            if vol.entries.get(v >> LEAF_LOG2 as i32).is_some() {
                 continue;
             }
             let depth = marched(&field, 0.15, v.as_vec3(), dir);
