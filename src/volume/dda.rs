@@ -33,6 +33,7 @@ use rayon::prelude::*;
 use crate::math::floor::floor;
 use crate::math::ray::{max, min, Ray};
 use crate::volume::dense_box::DenseBox;
+use crate::volume::keys::KeyIndex;
 use crate::volume::grid::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
 
 /// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
@@ -143,7 +144,7 @@ enum NodeCell {
 /// The dilated occupancy of a grid, built once and shared by every ray.
 pub struct Occupancy {
     /// Nodes (key = voxel >> 7) that hold any occupied block.
-    nodes: HashMap<IVec3, NodeCell>,
+    nodes: KeyIndex<NodeCell>,
     /// The occupied blocks of each partial node.
     partial: Vec<NodeBlocks>,
     /// Occupied blocks of partial nodes, with their dilated maximum and part: node by node in
@@ -162,7 +163,7 @@ impl Occupancy {
         fn map_bytes<V>(m: &HashMap<IVec3, V>) -> usize {
             m.capacity() * (std::mem::size_of::<(IVec3, V)>() + 1)
         }
-        map_bytes(&self.nodes)
+        self.nodes.memory_bytes()
             + map_bytes(&self.roots)
             + self.partial.capacity() * std::mem::size_of::<NodeBlocks>()
             + self.cells.capacity() * std::mem::size_of::<BlockCell>()
@@ -295,7 +296,7 @@ impl Occupancy {
             .collect();
         let (partial, cells) = gather_partial(&blocks, &mut nodes);
         Occupancy {
-            nodes,
+            nodes: KeyIndex::new(nodes.into_iter().collect()),
             partial,
             cells,
             roots,
@@ -305,10 +306,13 @@ impl Occupancy {
 
     #[inline]
     fn node(&self, key: IVec3) -> Option<NodeCell> {
-        if let Some(&m) = self.roots.get(&(key >> NODES_PER_ROOT_LOG2)) {
-            return Some(NodeCell::Dense(m));
+        // Root tiles are rare: most grids skip their lookup.
+        if !self.roots.is_empty() {
+            if let Some(&m) = self.roots.get(&(key >> NODES_PER_ROOT_LOG2)) {
+                return Some(NodeCell::Dense(m));
+            }
         }
-        self.nodes.get(&key).copied()
+        self.nodes.get(key)
     }
 
     /// Calls `f` with each span of the ray `origin + t·dir`, t ∈ [t0, t1], in order of t, until `f`
