@@ -169,10 +169,10 @@ section_render() {
     ensure_cache cloud_large_s1.6 "$CL" --sigma-t 1.6
     ensure_cache helix600_s1.6 "$HX" --sigma-t 1.6
 
-    echo "-- $RES, vscatter (cache, multiple scattering, $STUDIO) vs vdb_render (single scattering, 1 light), same camera (target: ratio <= 0.3)"
+    echo "-- $RES, vscatter (cache, multiple scattering, $STUDIO) vs vdb_render (single scattering, 1 light), same camera (target: ratio <= 0.3; cloud_large, issue 15: <= 0.2)"
     printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s\n" input vscatter_s vdb_rend_s ratio verdict vs_rssMB vr_rssMB vs_cpu vr_cpu march_s write_s read_s timing "load (vscatter | after)"
     compare_peer cloud fixtures/cloud.vdb 0.3
-    compare_peer cloud_large "$CL" 0.3
+    compare_peer cloud_large "$CL" 0.2
     # The half-size production cloud (issue 15: ratio <= 0.3, peak below vdb_render's) with
     # SCALE_HALF=1 once `scale` has built it: its σt 1.6 bake takes several minutes and 2 GB.
     if [ "${SCALE_HALF:-0}" = 1 ] && [ -f "$BENCH_IN/cloud_half.vdb" ]; then
