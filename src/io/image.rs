@@ -511,6 +511,10 @@ fn encode_png<W: Write + Seek>(
         png::ColorType::Rgba
     });
     enc.set_depth(png::BitDepth::Eight);
+    // fdeflate's fast mode: PNG is the preview format, written after the last band on one thread.
+    // On the bench cloud's 1920×1080 frame it took the write's tail from 0.19 to 0.06 s for a
+    // file of 452 KB instead of 362 KB.
+    enc.set_compression(png::Compression::Fast);
     enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
     if let Some(f) = fingerprint {
         enc.add_text_chunk(FINGERPRINT_KEY.into(), format!("{f:016x}"))
