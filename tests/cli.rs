@@ -51,6 +51,17 @@ pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// The channel names of an EXR's first layer, in the file's (alphabetical) order.
+pub fn exr_channels(path: &std::path::Path) -> Vec<String> {
+    let image = exr::prelude::read_all_flat_layers_from_file(path).unwrap();
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect()
+}
+
 /// Asserts a failure the way users must see it: the exit code, one line on stderr naming `names`,
 /// and no panic message.
 pub fn assert_clean_failure(out: &Output, code: i32, names: &str) {

@@ -33,8 +33,8 @@ use rayon::prelude::*;
 use crate::math::floor::floor;
 use crate::math::ray::{max, min, Ray};
 use crate::volume::dense_box::DenseBox;
-use crate::volume::keys::KeyIndex;
 use crate::volume::grid::{slot_offset, Leaf, SparseGrid, TileLevel, LEAF_DIM, LEAF_LOG2};
+use crate::volume::keys::KeyIndex;
 
 /// log2 of a node's edge in voxels (the internal-5 level of `Tree_*_5_4_3`).
 const NODE_LOG2: i32 = 7;

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use crate::{assert_clean_failure, fixture, stderr, vscatter_in};
+use crate::{assert_clean_failure, exr_channels, fixture, stderr, vscatter_in};
 
 fn stats_of(out: &std::process::Output) -> serde_json::Value {
     serde_json::from_str(String::from_utf8_lossy(&out.stdout).trim()).unwrap()
@@ -52,13 +52,7 @@ fn pathtrace_writes_the_same_layers_on_any_thread_count() {
         read("two.exr"),
         "thread count changed the image"
     );
-    let image = exr::prelude::read_all_flat_layers_from_file(dir.path().join("one.exr")).unwrap();
-    let names: Vec<String> = image.layer_data[0]
-        .channel_data
-        .list
-        .iter()
-        .map(|c| c.name.to_string())
-        .collect();
+    let names = exr_channels(&dir.path().join("one.exr"));
     for want in ["R", "A", "direct.R", "indirect.G", "depth.Z"] {
         assert!(names.iter().any(|n| n == want), "{want} missing: {names:?}");
     }
