@@ -5,6 +5,8 @@
 //! Conventions (docs/model.md): voxel (i,j,k) holds its value at index point (i,j,k); between centres the
 //! density is trilinear; inactive voxels and everything outside the tree take the background value.
 
+use std::sync::OnceLock;
+
 use glam::{DVec3, IVec3, Vec3};
 use half::f16;
 use half::slice::HalfFloatSliceExt;
@@ -272,6 +274,11 @@ pub struct SparseGrid {
     /// Coarse occupancy: the largest value inside each 128³ node (key `origin >> 7`), leaves and
     /// tiles alike, so a ray can skip a whole empty node in one step.
     node_max: HashMap<IVec3, f32>,
+    /// [`SparseGrid::value_stats`] and [`SparseGrid::active_bbox`] once asked, until the grid
+    /// changes: each is a pass over every active voxel, and a render from a cache asked for them
+    /// five times before its first ray (framing, warnings, the march's support).
+    stats: OnceLock<Option<ValueStats>>,
+    bbox: OnceLock<Option<(IVec3, IVec3)>>,
 }
 
 impl SparseGrid {
@@ -283,7 +290,16 @@ impl SparseGrid {
             leaf_index: HashMap::new(),
             tiles: Default::default(),
             node_max: HashMap::new(),
+            stats: OnceLock::new(),
+            bbox: OnceLock::new(),
         }
+    }
+
+    /// Forgets the summaries of the grid as it was ([`SparseGrid::value_stats`]): every change
+    /// goes through here.
+    fn changed(&mut self) {
+        self.stats = OnceLock::new();
+        self.bbox = OnceLock::new();
     }
 
     /// Room for `n` more leaves, so adding a known number of them moves none.
@@ -301,6 +317,7 @@ impl SparseGrid {
     /// Adds a leaf made by [`Leaf::new`] with this grid's background (a reader makes them in
     /// parallel, then adds them in order).
     pub fn push_leaf(&mut self, leaf: Leaf) {
+        self.changed();
         let key = leaf.origin >> LEAF_LOG2;
         self.leaf_index.insert(key, self.leaves.len() as u32);
         self.raise_node_max(leaf.origin >> 7, leaf.max);
@@ -309,6 +326,7 @@ impl SparseGrid {
 
     /// Adds an active constant tile at its own level (inactive tiles are background and not kept).
     pub fn insert_tile(&mut self, level: TileLevel, origin: IVec3, value: f32) {
+        self.changed();
         self.tiles[level.index()].insert(origin >> level.log2() as i32, value);
         if level != TileLevel::Root {
             self.raise_node_max(origin >> 7, value);
@@ -343,6 +361,7 @@ impl SparseGrid {
 
     /// Clamps negative tile values to zero (a density cannot be negative).
     pub fn clamp_negative_tiles(&mut self) {
+        self.changed();
         for map in self.tiles.iter_mut() {
             map.values_mut().for_each(|v| *v = v.max(0.0));
         }
@@ -350,6 +369,7 @@ impl SparseGrid {
     }
 
     pub fn leaves_mut(&mut self) -> &mut [Leaf] {
+        self.changed();
         &mut self.leaves
     }
 
@@ -384,7 +404,7 @@ impl SparseGrid {
 
     /// Inclusive index bounding box of the active voxels and tiles; `None` when nothing is active.
     pub fn active_bbox(&self) -> Option<(IVec3, IVec3)> {
-        self.bbox_where(|_| true)
+        *self.bbox.get_or_init(|| self.bbox_where(|_| true))
     }
 
     /// Inclusive index bounding box of the active voxels and tiles whose value is at least
@@ -428,6 +448,10 @@ impl SparseGrid {
 
     /// Min, max and sum over the active values; `None` when nothing is active.
     pub fn value_stats(&self) -> Option<ValueStats> {
+        *self.stats.get_or_init(|| self.compute_value_stats())
+    }
+
+    fn compute_value_stats(&self) -> Option<ValueStats> {
         let mut s = ValueStats {
             min: f32::INFINITY,
             max: f32::NEG_INFINITY,
@@ -651,6 +675,24 @@ mod tests {
         }
         leaf_with(&mut g, IVec3::ZERO, &vox);
         g
+    }
+
+    #[test]
+    fn summaries_follow_every_change_of_the_grid() {
+        let mut g = cube();
+        let stats = |g: &SparseGrid| g.value_stats().map(|s| (s.min, s.max, s.sum));
+        assert_eq!(stats(&g), Some((0.0, 7.0, 28.0)));
+        assert_eq!(g.active_bbox(), Some((IVec3::ZERO, IVec3::ONE)));
+        g.insert_tile(TileLevel::Block, IVec3::splat(8), 9.0);
+        assert_eq!(stats(&g), Some((0.0, 9.0, 28.0 + 9.0 * 512.0)));
+        assert_eq!(g.active_bbox(), Some((IVec3::ZERO, IVec3::splat(15))));
+        if let Some(v) = g.leaves_mut()[0].values.f32_mut() {
+            v.fill(-1.0);
+        }
+        assert_eq!(stats(&g), Some((-1.0, 9.0, -8.0 + 9.0 * 512.0)));
+        g.insert_tile(TileLevel::Block, IVec3::splat(8), -2.0);
+        g.clamp_negative_tiles();
+        assert_eq!(stats(&g), Some((-1.0, 0.0, -8.0)));
     }
 
     #[test]
