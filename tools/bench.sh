@@ -411,7 +411,8 @@ section_scale() {
             printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "bake σt 0.2 ($b)" "$WALL" "$RSS_MB" \
                 "$(j $n single_seconds %.1f)" "$(j $n lattice_seconds %.1f)" "$(mib "$(j $n far_field_bytes)")" \
                 "$([ $b = new ] && echo "${estimate:--}" || echo -)" "$LOAD"
-            run_timed "scale_render_${b}_$name" "$VS" render "$o/${name}_$b.vtc" -o "$o/${name}_$b.exr" --res 1920x1080 --quiet
+            # Each cache is rendered by the binary that baked it: the format may differ.
+            run_timed "scale_render_${b}_$name" "$bin" render "$o/${name}_$b.vtc" -o "$o/${name}_$b.exr" --res 1920x1080 --quiet
             printf "%-14s %-24s %8s %9s %9s %9s %11s %12s  %s\n" "$name" "render 1920x1080 ($b)" "$WALL" "$RSS_MB" - - - - "$LOAD"
         done
         echo "   $name bake new/old: $(ratio "${BW[new]}" "${BW[old]}"); new render against old: $("$VS" compare "$o/${name}_new.exr" "$o/${name}_old.exr" | head -1)"
