@@ -254,7 +254,7 @@ impl Scene {
         let (lights, mut report) = self.sun_lights(transfer, lighting);
         report.brick_seconds = brick_seconds;
         let refs: Vec<&SunLight> = lights.iter().map(|l| l.as_ref()).collect();
-        let lookup = |d| lighting.background(d);
+        let lookup = |d: &[Vec3], out: &mut [[f32; 3]]| lighting.backgrounds(d, out);
         let background: Option<Background> = background.then_some(&lookup);
         let (out, stats, times) = render::render_volume(
             &self.field,
@@ -466,7 +466,7 @@ impl Scene {
             max_bounces: trace.max_bounces,
             seed: trace.seed,
         };
-        let lookup = |d| lighting.background(d);
+        let lookup = |d: &[Vec3], out: &mut [[f32; 3]]| lighting.backgrounds(d, out);
         let background: Option<Background> = background.then_some(&lookup);
         let (out, stats, _) = render::film::stream_rows(
             camera,

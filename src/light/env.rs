@@ -2,14 +2,18 @@
 //! or Radiance `.hdr`, or the built-in procedural sky; bilinear lookup by direction; projection onto
 //! SH by the deterministic pixel quadrature of [`crate::light::sh`].
 
+use std::f32::consts::{FRAC_1_PI, TAU};
 use std::f64::consts::PI;
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 
+use glam::Vec3;
+
 use crate::error::{Error, Result};
 use crate::light::sh::{self, ShRgb};
 use crate::light::sun::{cap_solid_angle, Sun};
+use crate::math::arc;
 use crate::math::floor::floor;
 
 /// The `--env` value that selects the built-in sky instead of a file.
@@ -202,14 +206,65 @@ impl Environment {
 
     /// Bilinear radiance arriving from the unit direction `dir`; periodic in u, clamped in v.
     pub fn lookup(&self, dir: [f64; 3]) -> [f32; 3] {
-        let (u, v) = dir_to_uv(dir);
-        // u ∈ [0, 1], so x ∈ [−0.5, w − 0.5] and its floor lies in [−1, w − 1]: the columns wrap
-        // with one compare each, where `rem_euclid` is an integer division per lookup (every
-        // background pixel makes one).
-        let x = u * self.width as f64 - 0.5;
-        let y = (v * self.height as f64 - 0.5).clamp(0.0, (self.height - 1) as f64);
-        let (x0, y0) = (floor(x), floor(y));
-        let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+        let [x, y] = self.texel(dir.map(|c| c as f32));
+        self.blend(x, y)
+    }
+
+    /// [`Environment::lookup`] of the map turned by `angle` radians about +Y, with the convention
+    /// of [`crate::light::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
+    /// background matches rotated SH lighting.
+    pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
+        let mut out = [[0.0; 3]];
+        self.lookup_batch(&[Vec3::from_array(dir.map(|c| c as f32))], angle, &mut out);
+        out[0]
+    }
+
+    /// [`Environment::lookup_rotated`] of each of `dirs` into `out`: the map's coordinates of the
+    /// whole batch first, in one loop that vectorises ([`crate::math::arc`]), then the blends.
+    /// Every background pixel of a render makes one lookup; one at a time, glibc's `acosf` and
+    /// `atan2f` and their f64 arithmetic took 37 ns each, a tenth of the bench cloud's render.
+    pub fn lookup_batch(&self, dirs: &[Vec3], angle: f64, out: &mut [[f32; 3]]) {
+        // Texel coordinates, a chunk at a time on the stack.
+        const CHUNK: usize = 64;
+        let (s, c) = angle.sin_cos();
+        for (dirs, out) in dirs.chunks(CHUNK).zip(out.chunks_mut(CHUNK)) {
+            let mut at = [[0f32; 2]; CHUNK];
+            for (at, d) in at.iter_mut().zip(dirs) {
+                // No turn is the common case; otherwise the map turns by −angle, in f64 as
+                // `sh::rotate_dir_y` turns the SH lighting.
+                let d = match angle == 0.0 {
+                    true => d.to_array(),
+                    false => {
+                        let [x, y, z] = d.as_dvec3().to_array();
+                        [(c * x - s * z) as f32, y as f32, (s * x + c * z) as f32]
+                    }
+                };
+                *at = self.texel(d);
+            }
+            for (o, &[x, y]) in out.iter_mut().zip(&at) {
+                *o = self.blend(x, y);
+            }
+        }
+    }
+
+    /// The map's continuous pixel coordinates (x, y) of a unit direction: pixel centres at
+    /// integers + ½ shifted to integers, so bilinear weights are the fractions.
+    #[inline(always)]
+    fn texel(&self, dir: [f32; 3]) -> [f32; 2] {
+        let (phi, theta) = dir_to_angles(dir);
+        // φ ∈ [0, 2π], so x ∈ [−0.5, w − 0.5] and its floor lies in [−1, w − 1]: the columns wrap
+        // with one compare each in `blend`.
+        let x = phi * (self.width as f32 * (0.5 * FRAC_1_PI)) - 0.5;
+        let y =
+            (theta * (self.height as f32 * FRAC_1_PI) - 0.5).clamp(0.0, (self.height - 1) as f32);
+        [x, y]
+    }
+
+    /// The bilinear blend at pixel coordinates `x`, `y` ([`Environment::texel`]).
+    #[inline]
+    fn blend(&self, x: f32, y: f32) -> [f32; 3] {
+        let (x0, y0) = (floor(x as f64), floor(y as f64));
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
         let c0 = if x0 < 0 { self.width - 1 } else { x0 as usize };
         let c1 = if x0 + 1 >= self.width as i32 {
             0
@@ -226,17 +281,6 @@ impl Environment {
             *o = top * (1.0 - fy) + bottom * fy;
         }
         out
-    }
-
-    /// [`Environment::lookup`] of the map turned by `angle` radians about +Y, with the convention
-    /// of [`crate::light::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
-    /// background matches rotated SH lighting.
-    pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
-        // No turn is the common case; it skips a sin_cos per lookup.
-        if angle == 0.0 {
-            return self.lookup(dir);
-        }
-        self.lookup(sh::rotate_dir_y(dir, -angle))
     }
 
     /// SH coefficients of the map (pixel-centre values times exact pixel solid angles).
@@ -267,17 +311,21 @@ impl Environment {
     }
 }
 
-/// Latlong (u, v) ∈ [0,1)×[0,1] of a unit direction: θ = acos(y), φ = atan2(x, −z) (docs/model.md).
+/// Latlong (u, v) ∈ [0,1]×[0,1] of a unit direction: φ/2π and θ/π ([`dir_to_angles`]).
 pub fn dir_to_uv(dir: [f64; 3]) -> (f64, f64) {
-    // The angles in f32: within a few 1e-7 rad of the f64 ones (a thousandth of a pixel of a
-    // 4096-wide map), and glibc's f32 atan2 and acos cost a fraction of the f64 ones; every
-    // background pixel of a render makes one lookup.
-    let [x, y, z] = dir.map(|c| c as f32);
-    let theta = y.clamp(-1.0, 1.0).acos() as f64;
+    let (phi, theta) = dir_to_angles(dir.map(|c| c as f32));
+    (phi as f64 / (2.0 * PI), theta as f64 / PI)
+}
+
+/// Latlong angles (φ, θ) ∈ [0, 2π]×[0, π] of a unit direction: θ = acos(y), φ = atan2(x, −z)
+/// (docs/model.md), in f32 by [`crate::math::arc`].
+#[inline(always)]
+fn dir_to_angles([x, y, z]: [f32; 3]) -> (f32, f32) {
+    let theta = arc::acos(y);
     // atan2 ∈ [−π, π]: one add folds it into [0, 2π], the same value `rem_euclid` gives.
-    let phi = x.atan2(-z) as f64;
-    let phi = if phi < 0.0 { phi + 2.0 * PI } else { phi };
-    (phi / (2.0 * PI), theta / PI)
+    let phi = arc::atan2(x, -z);
+    let phi = if phi < 0.0 { phi + TAU } else { phi };
+    (phi, theta)
 }
 
 /// Reads into `buf` until it is full or the file ends; returns the count.
@@ -440,6 +488,24 @@ mod tests {
         assert!((v - 0.5 * (8.0 + 15.0)).abs() < 1e-3, "{v}");
         // Straight up clamps to row 0.
         assert!(env.lookup([0.0, 1.0, 0.0])[0] < 8.0);
+    }
+
+    #[test]
+    fn a_batch_looks_up_what_single_lookups_do_bit_for_bit() {
+        let env = Environment::load(&fixture("studio.exr")).unwrap();
+        // Directions all round, poles and the u seam included, in a batch longer than a chunk.
+        let dirs: Vec<Vec3> = (0..1000)
+            .map(|i| {
+                let t = i as f32 * 0.37;
+                Vec3::new(t.sin(), (i as f32 / 499.5 - 1.0).clamp(-1.0, 1.0), t.cos()).normalize()
+            })
+            .chain([Vec3::Y, -Vec3::Y, -Vec3::Z, Vec3::new(-1e-7, 0.0, -1.0)])
+            .collect();
+        let mut batch = vec![[0.0; 3]; dirs.len()];
+        env.lookup_batch(&dirs, 0.0, &mut batch);
+        for (d, b) in dirs.iter().zip(&batch) {
+            assert_eq!(env.lookup(d.as_dvec3().to_array()), *b, "{d}");
+        }
     }
 
     #[test]

@@ -122,24 +122,26 @@ impl Lighting {
         c
     }
 
-    /// Radiance arriving from the world direction `dir` (unit): the background behind the volume,
-    /// and what a path escaping along `dir` sees.
+    /// Radiance arriving from the world direction `dir` (unit): what a path escaping along `dir`
+    /// sees of the map.
     pub fn radiance(&self, dir: Vec3) -> [f32; 3] {
-        let d = [dir.x as f64, dir.y as f64, dir.z as f64];
-        self.env
-            .lookup_rotated(d, self.rotation)
-            .map(|v| v * self.scale)
+        let mut out = [[0.0; 3]];
+        self.env.lookup_batch(&[dir], self.rotation, &mut out);
+        out[0].map(|v| v * self.scale)
     }
 
-    /// What a camera ray that leaves the volume along `dir` sees: the map and the discs of the suns.
-    pub fn background(&self, dir: Vec3) -> [f32; 3] {
-        let mut c = self.radiance(dir);
-        for s in &self.suns {
-            for (c, l) in c.iter_mut().zip(s.radiance(dir)) {
-                *c += l;
+    /// What camera rays that leave the volume along `dirs` see, into `out`: the map and the discs
+    /// of the suns ([`crate::render::film::Background`]).
+    pub fn backgrounds(&self, dirs: &[Vec3], out: &mut [[f32; 3]]) {
+        self.env.lookup_batch(dirs, self.rotation, out);
+        for (c, &dir) in out.iter_mut().zip(dirs) {
+            *c = c.map(|v| v * self.scale);
+            for s in &self.suns {
+                for (c, l) in c.iter_mut().zip(s.radiance(dir)) {
+                    *c += l;
+                }
             }
         }
-        c
     }
 
     /// The light prepared for importance sampling (the path tracer's next-event estimation).
@@ -257,7 +259,9 @@ mod tests {
         assert_eq!(lit.suns[0].irradiance, sky.irradiance.map(|e| e * 2.0));
         // The background shows the disc; the map the path tracer escapes to does not.
         let d = lit.suns[0].direction;
-        assert!(lit.background(d)[0] > 1000.0 * lit.radiance(d)[0]);
+        let mut seen = [[0.0; 3]];
+        lit.backgrounds(&[d], &mut seen);
+        assert!(seen[0][0] > 1000.0 * lit.radiance(d)[0]);
         // A sun of the user's replaces it, unscaled and unturned.
         let mine = Sun::new(Vec3::Y, [1.0, 2.0, 3.0], 0.0).unwrap();
         let replaced = Lighting::load(env::SKY_SPEC, &options(vec![mine], true)).unwrap();

@@ -1,6 +1,7 @@
 //! Small numeric pieces the volume, the bake and the renderers share: rays and box clipping, fast
-//! floors, stateless hashes.
+//! floors and inverse trigonometry, stateless hashes.
 
+pub mod arc;
 pub mod floor;
 pub mod hash;
 pub mod ray;

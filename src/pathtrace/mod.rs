@@ -262,7 +262,7 @@ mod tests {
             seed: 5,
         };
         let cam = camera();
-        let bg = |d: Vec3| light.radiance(d);
+        let bg = crate::render::film::each_direction(|d| light.radiance(d));
         let background: Option<Background> = if background { Some(&bg) } else { None };
         let (frame, stats) = render_rows(
             &cam,

@@ -31,8 +31,22 @@ pub fn band_rows(width: u32) -> u32 {
 /// `range.len()` rows. What a renderer hands an image writer, which asks for one band at a time.
 pub type Rows<'a> = dyn FnMut(Range<u32>) -> Frame + Send + 'a;
 
-/// The environment seen behind the volume: radiance arriving along a world direction.
-pub type Background<'a> = &'a (dyn Fn(Vec3) -> [f32; 3] + Sync);
+/// The environment seen behind the volume: the radiance arriving along each world direction of
+/// a batch (`out[i]` for `dirs[i]`). A tile row's samples are looked up together, so the map's
+/// angles vectorise ([`crate::light::env::Environment::lookup_batch`]).
+pub type Background<'a> = &'a (dyn Fn(&[Vec3], &mut [[f32; 3]]) + Sync);
+
+/// A background from a function of one direction, looked up direction by direction (tests).
+#[cfg(test)]
+pub fn each_direction(
+    f: impl Fn(Vec3) -> [f32; 3] + Sync,
+) -> impl Fn(&[Vec3], &mut [[f32; 3]]) + Sync {
+    move |dirs, out| {
+        for (o, &d) in out.iter_mut().zip(dirs) {
+            *o = f(d);
+        }
+    }
+}
 
 /// One camera sample: pixel (`x`, `y`), sample `index` of the pixel, and its world-space ray.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -155,11 +169,39 @@ where
         .map_init(&scratch, |scratch, (x0, y0, rows)| {
             let mut stats = St::default();
             let mut trace = |sample, stats: &mut St| trace(sample, stats, scratch);
+            // One row of the tile at a time: its samples' rays, then their background in one
+            // batch, then the march.
+            let n = (TILE * spp) as usize;
+            let (mut rays, mut dirs, mut behind) = (
+                Vec::with_capacity(n),
+                Vec::with_capacity(n),
+                Vec::with_capacity(n),
+            );
             for (dy, row) in rows.into_iter().enumerate() {
                 let y = y0 + dy as u32;
-                for (dx, rgba) in row.rgba.iter_mut().enumerate() {
+                rays.clear();
+                for x in x0..x0 + row.rgba.len() as u32 {
+                    for index in 0..spp {
+                        let off = pixel_offset(x, y, index, spp);
+                        rays.push(camera.ray(x as f32 + off.x, y as f32 + off.y));
+                    }
+                }
+                dirs.clear();
+                dirs.extend(rays.iter().map(|r: &(Vec3, Vec3)| r.1));
+                behind.clear();
+                behind.resize(dirs.len(), [0.0f32; 3]);
+                if let Some(e) = background {
+                    e(&dirs, &mut behind);
+                }
+                let spp = spp as usize;
+                let per_pixel = rays.chunks_exact(spp).zip(behind.chunks_exact(spp));
+                for (dx, (rgba, (rays, behind))) in row.rgba.iter_mut().zip(per_pixel).enumerate() {
                     let x = x0 + dx as u32;
-                    let p = pixel(camera, spp, background, x, y, &mut trace, &mut stats);
+                    let samples = Samples {
+                        rays,
+                        behind: background.map(|_| behind),
+                    };
+                    let p = pixel(x, y, &samples, &mut trace, &mut stats);
                     *rgba = p.rgba;
                     row.direct[dx] = p.direct;
                     row.indirect[dx] = p.indirect;
@@ -224,12 +266,17 @@ struct Pixel {
     depth: f32,
 }
 
+/// A pixel's camera samples: each one's ray (origin, unit direction) and, with a background,
+/// the radiance behind it.
+struct Samples<'a> {
+    rays: &'a [(Vec3, Vec3)],
+    behind: Option<&'a [[f32; 3]]>,
+}
+
 fn pixel<St>(
-    camera: &Camera,
-    spp: u32,
-    background: Option<Background>,
     x: u32,
     y: u32,
+    samples: &Samples,
     trace: &mut impl FnMut(CameraSample, &mut St) -> RayResult,
     stats: &mut St,
 ) -> Pixel {
@@ -240,20 +287,18 @@ fn pixel<St>(
         depth: 0.0,
     };
     let (mut depth_sum, mut alpha_sum) = (0.0f32, 0.0f32);
-    let inv = 1.0 / spp as f32;
-    for index in 0..spp {
-        let off = pixel_offset(x, y, index, spp);
-        let (origin, dir) = camera.ray(x as f32 + off.x, y as f32 + off.y);
+    let inv = 1.0 / samples.rays.len() as f32;
+    for (index, &(origin, dir)) in samples.rays.iter().enumerate() {
         let sample = CameraSample {
             x,
             y,
-            index,
+            index: index as u32,
             origin,
             dir,
         };
         let r = trace(sample, stats);
         let alpha = 1.0 - r.transmittance;
-        let bg = background.map(|e| e(dir));
+        let bg = samples.behind.map(|b| b[index]);
         for c in 0..3 {
             let behind = bg.map_or(0.0, |e| r.transmittance * e[c]);
             px.rgba[c] += inv * (r.direct[c] + r.indirect[c] + behind);

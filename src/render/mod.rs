@@ -308,7 +308,7 @@ mod tests {
             sun_search: None,
             projections: Default::default(),
         };
-        let bg = |_: Vec3| c;
+        let bg = film::each_direction(|_| c);
         let cam = Camera::framing(Vec3::ZERO, Vec3::splat(127.0), 24, 16, 45.0).unwrap();
         let field = DensityField::new(g);
         let (frame, stats, _) = render_volume(

@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::math::ray::Ray;
-use crate::render::film::Frame;
+use crate::render::film::{each_direction, Frame};
 use crate::render::relight::Radiance;
 use crate::transfer::shape::TransferShape;
 use crate::volume::grid::{add_hashed_leaves, block_box, TileLevel, LEAF_VOXELS};
@@ -114,8 +114,8 @@ fn unit_tile(transform: Transform, value: f32) -> SparseGrid {
 
 #[test]
 fn zero_density_shows_the_background_exactly() {
-    let constant = |_: Vec3| [0.3f32, 0.6, 1.2];
-    let directional = |d: Vec3| [d.x + 1.0, 2.0 * d.y + 3.0, d.z.abs()];
+    let constant = each_direction(|_| [0.3f32, 0.6, 1.2]);
+    let directional = each_direction(|d| [d.x + 1.0, 2.0 * d.y + 3.0, d.z.abs()]);
     let backgrounds: [Background; 2] = [&constant, &directional];
     // Active but zero: a node tile and a leaf; and a grid with nothing active at all.
     let mut zeros = unit_tile(anisotropic(), 0.0);
@@ -138,7 +138,9 @@ fn zero_density_shows_the_background_exactly() {
                     for (i, px) in frame.rgba.iter().enumerate() {
                         let (x, y) = (i as u32 % 24, i as u32 / 24);
                         let (_, dir) = cam.ray(x as f32 + 0.5, y as f32 + 0.5);
-                        let e = bg(dir);
+                        let mut e = [[0.0; 3]];
+                        bg(&[dir], &mut e);
+                        let e = e[0];
                         assert_eq!(*px, [e[0], e[1], e[2], 1.0]);
                         assert_eq!(frame.direct[i], [0.0; 3]);
                         assert_eq!(frame.depth[i], 0.0);
@@ -205,7 +207,7 @@ fn pure_absorber_is_transmittance_times_background() {
     let sigma_t = 1.5f32; // longest chord ≈ 2.2 world units: optical depth ≤ 3.4 < 5
     let source = uniform([[7.0; 3]; 2]);
     let e = [1.0f32, 0.5, 2.0];
-    let bg = |_: Vec3| e;
+    let bg = each_direction(|_| e);
     let scene = Scene::new(&field, medium(sigma_t, 0.0), &source, Some(&bg));
     let settings = MarchSettings {
         step_voxels: 0.25,
@@ -253,7 +255,7 @@ fn furnace_albedo_one_gives_the_background() {
     let field = DensityField::new(g.clone());
     let c = [0.8f32, 1.0, 1.7];
     let source = uniform([[c[0], c[1], 0.0], [0.0, 0.0, c[2]]]);
-    let bg = |_: Vec3| c;
+    let bg = each_direction(|_| c);
     for sigma_t in [0.5f32, 4.0, 200.0] {
         let scene = Scene::new(&field, medium(sigma_t, 1.0), &source, Some(&bg));
         for cam in cameras(&g, 16, 12) {
@@ -280,7 +282,7 @@ fn lumpy() -> SparseGrid {
 fn skipping_changes_nothing() {
     let g = lumpy();
     let field = DensityField::new(g.clone());
-    let directional = |d: Vec3| [d.x.abs(), 0.5 + d.y, 1.0 - d.z];
+    let directional = each_direction(|d| [d.x.abs(), 0.5 + d.y, 1.0 - d.z]);
     for (sigma_t, bg) in [(3.0f32, Some(&directional as Background)), (40.0, None)] {
         let source = smooth();
         let scene = Scene::new(&field, medium(sigma_t, 0.8), &source, bg);
@@ -547,7 +549,7 @@ fn real_cloud_skip_equals_plain() {
         g.transform.index_to_world(hi.as_dvec3()).as_vec3(),
     );
     let cam = Camera::framing(wlo.min(whi), wlo.max(whi), 64, 48, 45.0).unwrap();
-    let sky = |d: Vec3| [0.2 + d.y.max(0.0), 0.4, 0.9];
+    let sky = each_direction(|d| [0.2 + d.y.max(0.0), 0.4, 0.9]);
     // An optical depth of about 8 across the cloud's 96-voxel width at density 1.
     let sigma_t = 8.0 / (96.0 * g.transform.voxel_size().x as f32);
     let source = smooth();
