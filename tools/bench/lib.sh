@@ -92,10 +92,11 @@ wall_of() {
 median() {
     case " $* " in *" - "*) echo "-"; return 0 ;; esac
     printf "%s\n" "$@" | sort -g | awk '{ v[NR] = $1 } END{
-        if (NR % 2) printf "%.2f", v[(NR + 1) / 2]; else printf "%.2f", (v[NR / 2] + v[NR / 2 + 1]) / 2 }'
+        if (NR % 2) printf "%.3f", v[(NR + 1) / 2]; else printf "%.3f", (v[NR / 2] + v[NR / 2 + 1]) / 2 }'
 }
 mib() { awk -v b="$1" 'BEGIN{ if (b=="-") print "-"; else printf "%.1f", b/1048576 }'; }
-ratio() { awk -v a="$1" -v b="$2" 'BEGIN{ if (a=="-"||b=="-"||b==0) print "-"; else printf "%.2f", a/b }'; }
+# Three decimals: a verdict against a target such as 0.2 must not pass on rounding.
+ratio() { awk -v a="$1" -v b="$2" 'BEGIN{ if (a=="-"||b=="-"||b==0) print "-"; else printf "%.3f", a/b }'; }
 # verdict VALUE OP LIMIT : "ok" or "MISS (x1.23 of target)"
 verdict() {
     awk -v v="$1" -v op="$2" -v t="$3" 'BEGIN{
