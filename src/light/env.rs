@@ -210,19 +210,13 @@ impl Environment {
         self.blend(x, y)
     }
 
-    /// [`Environment::lookup`] of the map turned by `angle` radians about +Y, with the convention
-    /// of [`crate::light::sh::Sh::rotate_y`] (positive: counter-clockwise seen from above), so a rendered
-    /// background matches rotated SH lighting.
-    pub fn lookup_rotated(&self, dir: [f64; 3], angle: f64) -> [f32; 3] {
-        let mut out = [[0.0; 3]];
-        self.lookup_batch(&[Vec3::from_array(dir.map(|c| c as f32))], angle, &mut out);
-        out[0]
-    }
-
-    /// [`Environment::lookup_rotated`] of each of `dirs` into `out`: the map's coordinates of the
-    /// whole batch first, in one loop that vectorises ([`crate::math::arc`]), then the blends.
-    /// Every background pixel of a render makes one lookup; one at a time, glibc's `acosf` and
-    /// `atan2f` and their f64 arithmetic took 37 ns each, a tenth of the bench cloud's render.
+    /// [`Environment::lookup`] of each of `dirs` into `out`, the map turned by `angle` radians
+    /// about +Y with the convention of [`crate::light::sh::Sh::rotate_y`] (positive:
+    /// counter-clockwise seen from above), so a rendered background matches rotated SH lighting.
+    /// The map's coordinates of the whole batch first, in one loop that vectorises
+    /// ([`crate::math::arc`]), then the blends: every background pixel of a render makes one
+    /// lookup, and one at a time, glibc's `acosf` and `atan2f` and their f64 arithmetic took a
+    /// tenth of the bench cloud's render.
     pub fn lookup_batch(&self, dirs: &[Vec3], angle: f64, out: &mut [[f32; 3]]) {
         // Texel coordinates, a chunk at a time on the stack.
         const CHUNK: usize = 64;
@@ -526,7 +520,13 @@ mod tests {
         // And the map itself: the light at azimuth 60° (φ) appears at 60° − α after rotation.
         let light = sh::direction((90.0f64 - 30.0).to_radians(), 60f64.to_radians());
         let moved = sh::direction((90.0f64 - 30.0).to_radians(), 60f64.to_radians() - alpha);
-        assert!((env.lookup_rotated(moved, alpha)[0] - env.lookup(light)[0]).abs() < 1e-3);
+        let mut seen = [[0.0; 3]];
+        env.lookup_batch(
+            &[Vec3::from_array(moved.map(|c| c as f32))],
+            alpha,
+            &mut seen,
+        );
+        assert!((seen[0][0] - env.lookup(light)[0]).abs() < 1e-3);
     }
 
     #[test]
