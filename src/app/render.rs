@@ -1,8 +1,8 @@
 //! `vscatter render`: volume in, image out — or a sequence in, images out. Flags are checked
 //! (output paths included) before any work; then each frame's scene is opened, baked if it has no
 //! transfer, and rendered with the transfer or the path tracer under each map; the EXR (RGBA, and
-//! with `--layers` the direct, indirect and depth layers) or PNG is written atomically with a fingerprint of what made
-//! it, so a rerun of a sequence skips the images that are current.
+//! with `--layers` the direct, indirect and depth layers) or PNG is written atomically with a
+//! fingerprint of what made it, so a rerun of a sequence skips the images that are current.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

@@ -220,15 +220,16 @@ impl Environment {
     pub fn lookup_batch(&self, dirs: &[Vec3], angle: f64, out: &mut [[f32; 3]]) {
         // Texel coordinates, a chunk at a time on the stack.
         const CHUNK: usize = 64;
-        let (s, c) = angle.sin_cos();
+        // No turn is the common case, and it skips the sin_cos (the path tracer looks up one
+        // direction at a time); otherwise the map turns by −angle, in f64 as `sh::rotate_dir_y`
+        // turns the SH lighting.
+        let turn = (angle != 0.0).then(|| angle.sin_cos());
         for (dirs, out) in dirs.chunks(CHUNK).zip(out.chunks_mut(CHUNK)) {
             let mut at = [[0f32; 2]; CHUNK];
             for (at, d) in at.iter_mut().zip(dirs) {
-                // No turn is the common case; otherwise the map turns by −angle, in f64 as
-                // `sh::rotate_dir_y` turns the SH lighting.
-                let d = match angle == 0.0 {
-                    true => d.to_array(),
-                    false => {
+                let d = match turn {
+                    None => d.to_array(),
+                    Some((s, c)) => {
                         let [x, y, z] = d.as_dvec3().to_array();
                         [(c * x - s * z) as f32, y as f32, (s * x + c * z) as f32]
                     }

@@ -171,35 +171,36 @@ where
             let mut trace = |sample, stats: &mut St| trace(sample, stats, scratch);
             // One row of the tile at a time: its samples' rays, then their background in one
             // batch, then the march.
-            let n = (TILE * spp) as usize;
-            let (mut rays, mut dirs, mut behind) = (
+            let (n, spp) = ((TILE * spp) as usize, spp as usize);
+            let (mut origins, mut dirs, mut behind) = (
                 Vec::with_capacity(n),
                 Vec::with_capacity(n),
                 Vec::with_capacity(n),
             );
             for (dy, row) in rows.into_iter().enumerate() {
                 let y = y0 + dy as u32;
-                rays.clear();
+                origins.clear();
+                dirs.clear();
                 for x in x0..x0 + row.rgba.len() as u32 {
-                    for index in 0..spp {
-                        let off = pixel_offset(x, y, index, spp);
-                        rays.push(camera.ray(x as f32 + off.x, y as f32 + off.y));
+                    for index in 0..spp as u32 {
+                        let off = pixel_offset(x, y, index, spp as u32);
+                        let (origin, dir) = camera.ray(x as f32 + off.x, y as f32 + off.y);
+                        origins.push(origin);
+                        dirs.push(dir);
                     }
                 }
-                dirs.clear();
-                dirs.extend(rays.iter().map(|r: &(Vec3, Vec3)| r.1));
-                behind.clear();
-                behind.resize(dirs.len(), [0.0f32; 3]);
                 if let Some(e) = background {
+                    behind.clear();
+                    behind.resize(dirs.len(), [0.0f32; 3]);
                     e(&dirs, &mut behind);
                 }
-                let spp = spp as usize;
-                let per_pixel = rays.chunks_exact(spp).zip(behind.chunks_exact(spp));
-                for (dx, (rgba, (rays, behind))) in row.rgba.iter_mut().zip(per_pixel).enumerate() {
+                for (dx, rgba) in row.rgba.iter_mut().enumerate() {
                     let x = x0 + dx as u32;
+                    let at = dx * spp..(dx + 1) * spp;
                     let samples = Samples {
-                        rays,
-                        behind: background.map(|_| behind),
+                        origins: &origins[at.clone()],
+                        dirs: &dirs[at.clone()],
+                        behind: background.map(|_| &behind[at]),
                     };
                     let p = pixel(x, y, &samples, &mut trace, &mut stats);
                     *rgba = p.rgba;
@@ -266,10 +267,11 @@ struct Pixel {
     depth: f32,
 }
 
-/// A pixel's camera samples: each one's ray (origin, unit direction) and, with a background,
-/// the radiance behind it.
+/// A pixel's camera samples: each one's ray (origin and unit direction) and, with a
+/// background, the radiance behind it.
 struct Samples<'a> {
-    rays: &'a [(Vec3, Vec3)],
+    origins: &'a [Vec3],
+    dirs: &'a [Vec3],
     behind: Option<&'a [[f32; 3]]>,
 }
 
@@ -287,8 +289,8 @@ fn pixel<St>(
         depth: 0.0,
     };
     let (mut depth_sum, mut alpha_sum) = (0.0f32, 0.0f32);
-    let inv = 1.0 / samples.rays.len() as f32;
-    for (index, &(origin, dir)) in samples.rays.iter().enumerate() {
+    let inv = 1.0 / samples.dirs.len() as f32;
+    for (index, (&origin, &dir)) in samples.origins.iter().zip(samples.dirs).enumerate() {
         let sample = CameraSample {
             x,
             y,

@@ -1,7 +1,8 @@
 //! The sparse transfer grid: transfer voxels at 1/K of the density resolution, allocated only where
 //! the density is active within a voxel's footprint plus a one-voxel apron, grouped in 4³ tiles
-//! found through a [`KeyIndex`]. Per-voxel data (SH coefficients, radiance) lives in flat arrays indexed by the
-//! voxel's slot; slots are numbered tile by tile, so each tile's coefficients are contiguous.
+//! found through a [`KeyIndex`]. Per-voxel data (SH coefficients, radiance) lives in flat arrays
+//! indexed by the voxel's slot; slots are numbered tile by tile, so each tile's coefficients are
+//! contiguous.
 //!
 //! Transfer voxel `a` sits at density index point `K·a` and its footprint is the density voxels
 //! nearest to it, `round(i / K) = a`. Radiance at a density index point `p` is trilinear between the
