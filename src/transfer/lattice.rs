@@ -491,15 +491,16 @@ fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
         (v - off * t, t)
     };
     // The sort keys computed once per cell, not at every comparison.
-    let mut order: Vec<([i32; 4], u32)> = voxels
+    let mut order: Vec<Placed> = voxels
         .iter()
         .enumerate()
         .map(|(s, &v)| {
             let (key, t) = line(v);
-            ([key.x, key.y, key.z, t], s as u32)
+            (line_order(key, t), s as u32)
         })
         .collect();
-    order.sort_unstable();
+    // No two cells share a line and a t, so the slots need not take part.
+    order.sort_unstable_by_key(|&(key, _)| key);
     let there = sweep_of(&order);
     // The same lines, each run reversed: −off's order.
     let mut start = 0;
@@ -516,13 +517,24 @@ fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
 }
 
 /// Whether two cells of [`lines`]' order lie on one line (their keys but t agree).
-fn same_line(a: &([i32; 4], u32), b: &([i32; 4], u32)) -> bool {
-    a.0[..3] == b.0[..3]
+fn same_line(a: &Placed, b: &Placed) -> bool {
+    a.0 >> 32 == b.0 >> 32
+}
+
+/// A cell placed on its line: [`line_order`] and the cell's slot.
+type Placed = (u128, u32);
+
+/// One number whose order is that of (line, t), line by its key's x, y and z: each i32 with its
+/// sign bit flipped (so the unsigned order is the signed one) in 32 bits of its own, t lowest. A
+/// sort compares one integer instead of four.
+fn line_order(key: IVec3, t: i32) -> u128 {
+    let bits = |v: i32| (v as u32 ^ 1 << 31) as u128;
+    bits(key.x) << 96 | bits(key.y) << 64 | bits(key.z) << 32 | bits(t)
 }
 
 /// A sweep over cells in line order (`order`: each line's key, t and a cell's slot, lines
 /// contiguous), and each cell's place in it.
-fn sweep_of(order: &[([i32; 4], u32)]) -> (Sweep, Vec<u32>) {
+fn sweep_of(order: &[Placed]) -> (Sweep, Vec<u32>) {
     let n = order.len();
     let mut place = vec![0u32; n];
     let mut links = Vec::with_capacity(n);
@@ -555,25 +567,32 @@ fn cell_links(
     medium: Medium,
 ) -> [Link; MAX_DIRECTIONS] {
     let d = dirs.len();
-    let segments = dirs.spread(dirs.opposite_pairs().map(|(j, _)| {
+    // Fixed arrays, not vectors: a bake links hundreds of thousands of cells, each in a few
+    // microseconds.
+    let mut segments = [Segment::default(); MAX_DIRECTIONS];
+    for (j, o) in dirs.opposite_pairs() {
         let half = dirs.offsets[j].as_vec3() * (k as f32 / 2.0);
-        segment_pair(acc, scratch, x - half, x + half, lengths[j], medium.sigma_t)
-    }));
-    let lambda: Vec<f64> = segments
-        .iter()
-        .zip(&dirs.offsets)
-        .map(|(seg, off)| reflection(seg.tau as f64 / off.as_vec3().length() as f64))
-        .collect();
+        [segments[j], segments[o]] =
+            segment_pair(acc, scratch, x - half, x + half, lengths[j], medium.sigma_t);
+    }
+    let segments = &segments[..d];
+    let mut lambda = [0f64; MAX_DIRECTIONS];
+    for ((lam, seg), off) in lambda.iter_mut().zip(segments).zip(&dirs.offsets) {
+        *lam = reflection(seg.tau as f64 / off.as_vec3().length() as f64);
+    }
     // Emission shares e_j ∝ (1 − λ_j)·w_j·σ̄_j: what enters line j and collides there; an empty
     // cell scatters nothing, any shares will do.
-    let absorbing: Vec<f64> = segments
-        .iter()
+    let mut absorbing = [0f64; MAX_DIRECTIONS];
+    for ((((a, seg), w), l), lam) in absorbing
+        .iter_mut()
+        .zip(segments)
         .zip(&dirs.weights)
         .zip(lengths)
         .zip(&lambda)
-        .map(|(((seg, w), l), lam)| (1.0 - lam) * *w as f64 * seg.tau as f64 / *l as f64)
-        .collect();
-    let total: f64 = absorbing.iter().sum();
+    {
+        *a = (1.0 - lam) * *w as f64 * seg.tau as f64 / *l as f64;
+    }
+    let total: f64 = absorbing[..d].iter().sum();
     let share = |j: usize| match total > 0.0 {
         true => absorbing[j] / total,
         false => dirs.weights[j] as f64,
@@ -698,6 +717,7 @@ fn inflow(dirs: &Directions, lengths: &[f32], bands: usize) -> Vec<f32> {
 }
 
 /// How one cell's segment along a direction transmits light, found by marching it.
+#[derive(Clone, Copy, Default)]
 struct Segment {
     tau: f32,
     trans: f32,
@@ -775,13 +795,14 @@ fn segment_pair(
 /// density as collisions are, escapes past its end (ε) and crosses the node (η).
 fn segment(rho: &[f32], exits: &[(f32, f32)], length: f32, depth_per_density: f32) -> Segment {
     let depth = |r: &f32| depth_per_density * r;
-    // The whole depth, and the depth to the node at the end of sub-step steps/2 − 1.
+    // The whole depth; the node sits at the end of sub-step steps/2 − 1.
     let node = rho.len() / 2;
     let tau: f32 = rho.iter().map(depth).sum();
-    let half: f32 = rho[..node].iter().map(depth).sum();
     // Emission in sub-step i, weighted by ρ_i: the share escaping past the end, e^(−(τ − end_i)),
     // and upstream of the node the share crossing it, e^(−(half − end_i)): products of the
-    // sub-steps' own transmittances downstream, from the end back.
+    // sub-steps' own transmittances downstream, from the end back. Run to the start, the two
+    // products are the segment's e^(−τ) and e^(−half) themselves, with no exponential of their
+    // own (two of the three a sub-step-short segment took).
     let (mut weight, mut escape, mut crossing) = (0.0f32, 0.0f32, 0.0f32);
     let (mut to_end, mut to_node) = (1.0f32, 1.0f32);
     for (i, (r, &(through, leaving))) in rho.iter().zip(exits).enumerate().rev() {
@@ -806,9 +827,9 @@ fn segment(rho: &[f32], exits: &[(f32, f32)], length: f32, depth_per_density: f3
     };
     Segment {
         tau,
-        trans: (-tau).exp(),
+        trans: to_end,
         escape,
-        read_in: length * (-half).exp(),
+        read_in: length * to_node,
         read_emit: length * crossing,
     }
 }
