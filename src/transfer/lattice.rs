@@ -320,7 +320,8 @@ impl Directions {
 /// next link of its line.
 #[derive(Debug, Clone, Copy, Default)]
 struct Link {
-    /// The cell's slot, with [`LINE_START`] set on the first cell of a line.
+    /// The cell's slot, with [`LINE_START`] set on the first cell of a line and [`REFLECTS`] on
+    /// a cell that reflects.
     node: u32,
     /// e^(−τ) of the whole segment.
     trans: f32,
@@ -330,13 +331,17 @@ struct Link {
     emit_out: f32,
     /// Fluence at the node per unit of the cell's scattered power: ℓ·e_j·η/(1 − α·s).
     read_emit: f32,
-    /// λ: share of the entering flux the cell sends straight back along −d_j (thick cells only).
-    reflect: f32,
 }
 
 /// Marks a line's first cell in [`Link::node`]: no active cell lies upstream of it along −d_j,
-/// so the environment enters there. Slots stay below it: a layout holds far fewer than 2³¹ cells.
+/// so the environment enters there.
 const LINE_START: u32 = 1 << 31;
+/// Marks a reflecting cell's link in [`Link::node`]: its λ_j is in [`Links::reflectance`]. Most
+/// cells reflect nothing, and a sweep streams every link once a generation: a λ in every link
+/// was a fifth of the bytes a sun's solve reads.
+const REFLECTS: u32 = 1 << 30;
+/// The slot in [`Link::node`]: a layout holds far fewer than 2³⁰ cells.
+const SLOT: u32 = REFLECTS - 1;
 
 /// Links per task of a sweep, at least (a task ends where a line does): enough that scheduling
 /// costs nothing next to the links, few enough that two threads share a small lattice.
@@ -374,6 +379,9 @@ struct Links {
     /// Per cell, its row in the reflected-light buffers (`NO_LINK`: it reflects nothing).
     reflecting: Vec<u32>,
     reflecting_cells: usize,
+    /// λ_j per reflecting cell (its row) and direction, `row × D + j`: the share of the flux
+    /// entering the cell along d_j that it sends straight back along −d_j.
+    reflectance: Vec<f32>,
     /// Whether a sweep's tasks run in parallel ([`PARALLEL_SWEEP_LINKS`]).
     parallel_sweeps: bool,
 }
@@ -420,9 +428,11 @@ fn build_links(
     let (mut sweeps, places): (Vec<Sweep>, Vec<Vec<u32>>) = dirs.spread(laid).into_iter().unzip();
     // Then each cell's links, a block of cells at a time, written straight to their places.
     let mut reflects = vec![false; n];
+    let mut reflectance = Vec::new();
     for start in (0..n).step_by(LINK_BLOCK) {
         let end = (start + LINK_BLOCK).min(n);
-        let block: Vec<[Link; MAX_DIRECTIONS]> = layout.voxels()[start..end]
+        let block: Vec<([Link; MAX_DIRECTIONS], [f32; MAX_DIRECTIONS])> = layout.voxels()
+            [start..end]
             .par_iter()
             .map_init(
                 || (field.sampler(), Box::new(SegmentScratch::new())),
@@ -432,22 +442,26 @@ fn build_links(
                 },
             )
             .collect();
+        for (r, (_, lambda)) in reflects[start..end].iter_mut().zip(&block) {
+            *r = lambda[..d].iter().any(|&l| l > 0.0);
+            if *r {
+                reflectance.extend_from_slice(&lambda[..d]);
+            }
+        }
+        let flags = &reflects[start..end];
         sweeps
             .par_iter_mut()
             .zip(&places)
             .enumerate()
             .for_each(|(j, (sweep, place))| {
-                for (cell, &at) in block.iter().zip(&place[start..end]) {
+                for (((cell, _), &at), &r) in block.iter().zip(&place[start..end]).zip(flags) {
                     let link = &mut sweep.links[at as usize];
                     *link = Link {
-                        node: link.node,
+                        node: link.node | if r { REFLECTS } else { 0 },
                         ..cell[j]
                     };
                 }
             });
-        for (r, cell) in reflects[start..end].iter_mut().zip(&block) {
-            *r = cell[..d].iter().any(|l| l.reflect > 0.0);
-        }
     }
     let mut reflecting_cells = 0;
     let reflecting = reflects
@@ -465,6 +479,7 @@ fn build_links(
         pair: pairs(&dirs),
         reflecting,
         reflecting_cells,
+        reflectance,
         parallel_sweeps: n >= PARALLEL_SWEEP_LINKS,
         sweeps,
     }
@@ -565,7 +580,7 @@ fn cell_links(
     dirs: &Directions,
     lengths: &[f32],
     medium: Medium,
-) -> [Link; MAX_DIRECTIONS] {
+) -> ([Link; MAX_DIRECTIONS], [f32; MAX_DIRECTIONS]) {
     let d = dirs.len();
     // Fixed arrays, not vectors: a bake links hundreds of thousands of cells, each in a few
     // microseconds.
@@ -611,10 +626,9 @@ fn cell_links(
             // The node reads the light that entered line j, not what it reflected at the face:
             // 1/(1 − λ_j) keeps a uniform field's readout exact.
             read_emit: (share(j) * gain * seg.read_emit as f64 / (1.0 - lambda[j])) as f32,
-            reflect: lambda[j] as f32,
         };
     }
-    links
+    (links, lambda.map(|l| l as f32))
 }
 
 /// λ(t) = (√t − 1)/(√t + 1) above [`REFLECT_ABOVE_DEPTH`], else 0: the share of the light
@@ -928,6 +942,7 @@ fn sweep<R: Lanes, const INFLOW: bool>(
     c0: usize,
 ) -> f64 {
     let sweep = &links.sweeps[j];
+    let d = links.sweeps.len();
     // The pair's buffers are one run of rows, a reflecting cell's row in it: a sweep touches one
     // pair's rows only, so they share no cache line with the other pairs'.
     let waiting = links.pair[j] * links.reflecting_cells;
@@ -942,13 +957,20 @@ fn sweep<R: Lanes, const INFLOW: bool>(
             if link.node & LINE_START != 0 {
                 (p, unscattered) = (R::ZERO, inflow);
             }
-            let cell = (link.node & !LINE_START) as usize;
+            let cell = (link.node & SLOT) as usize;
             let x = cell * NODE_ROWS;
             // SAFETY (here and below): the rows of this link's cell are its alone in this sweep
             // (`SweepRows`), and no link writes an emission.
             let e = unsafe { nodes.get(x + emitting) };
-            let row = links.reflecting[cell] as usize;
-            let reflects = row != NO_LINK as usize;
+            let reflects = link.node & REFLECTS != 0;
+            // A cell that reflects nothing reads neither its row nor its λ (0).
+            let (row, lambda) = match reflects {
+                true => {
+                    let row = links.reflecting[cell] as usize;
+                    (row, links.reflectance[row * d + j])
+                }
+                false => (0, 0.0),
+            };
             let back = match reflects {
                 true => unsafe { reflected.take(waiting + row) },
                 false => R::ZERO,
@@ -957,7 +979,7 @@ fn sweep<R: Lanes, const INFLOW: bool>(
                 true => p + unscattered,
                 false => p,
             };
-            let enter = 1.0 - link.reflect;
+            let enter = 1.0 - lambda;
             let read = p * link.read_in + e * link.read_emit;
             // Only entering flux feeds the next generation: the cell's own emission re-collides
             // inside its self-scattering gain already.
@@ -970,8 +992,8 @@ fn sweep<R: Lanes, const INFLOW: bool>(
                 nodes.add(x + FLUENCE, read);
                 nodes.add(x + next, collided);
             }
-            if reflects && link.reflect > 0.0 {
-                let r = entering * (albedo * link.reflect);
+            if reflects && lambda > 0.0 {
+                let r = entering * (albedo * lambda);
                 unsafe { reflected.add(waiting + row, r) };
             }
             if c0 == 0 {

@@ -88,7 +88,7 @@ impl MemoryEstimate {
             true => 0,
             false => {
                 let d = settings.lattice.directions();
-                let links = n * d as u64 * LINK_RECORD_BYTES;
+                let links = link_bytes(n, d, reflecting);
                 let build = links + n * d as u64 * LINK_PLACE_BYTES;
                 // Small lattices transport a chunk a thread, large ones one chunk at a time.
                 let in_flight = match voxels >= lattice::PARALLEL_SWEEP_LINKS {
@@ -207,7 +207,16 @@ pub fn visibility_bytes(field: &DensityField, resolution: Resolution) -> Visibil
 }
 
 /// Bytes of a lattice link's record in its sweep.
-const LINK_RECORD_BYTES: u64 = 24;
+const LINK_RECORD_BYTES: u64 = 20;
+/// Bytes of a reflecting cell's λ per direction.
+const REFLECTANCE_BYTES: f64 = 4.0;
+
+/// Bytes of the links of `nodes` cells along `directions`, `reflecting` the share of cells that
+/// reflect.
+fn link_bytes(nodes: u64, directions: usize, reflecting: f64) -> u64 {
+    let per_cell = LINK_RECORD_BYTES as f64 + reflecting * REFLECTANCE_BYTES;
+    (nodes as f64 * directions as f64 * per_cell) as u64
+}
 /// Bytes per link of its place in its sweep, held while the links are built.
 const LINK_PLACE_BYTES: u64 = 4;
 /// Bytes of a row of a chunk's transport state: `lattice::CHUNK` f32 lanes.
@@ -231,7 +240,7 @@ fn transport_bytes(voxels: usize, directions: usize, reflecting: f64, row_bytes:
 /// `transfer_voxels` ([`lattice::solve_emission`]), `reflecting` the share of cells that reflect:
 /// its links while they are built, or beside the transport of its one value a node.
 pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f64) -> u64 {
-    let links = transfer_voxels as u64 * directions as u64 * LINK_RECORD_BYTES;
+    let links = link_bytes(transfer_voxels as u64, directions, reflecting);
     let build = transfer_voxels as u64 * directions as u64 * LINK_PLACE_BYTES;
     let transport = transport_bytes(
         transfer_voxels,

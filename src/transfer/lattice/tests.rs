@@ -199,7 +199,7 @@ fn each_line_passes_light_to_the_next_active_cell_along_it() {
         .into_iter()
         .flat_map(|off| lines(&layout, off).into_iter().zip([off, -off]));
     for ((sweep, place), off) in laid {
-        let slots: Vec<u32> = sweep.links.iter().map(|l| l.node & !LINE_START).collect();
+        let slots: Vec<u32> = sweep.links.iter().map(|l| l.node & SLOT).collect();
         let mut seen = vec![false; n];
         for (i, &s) in slots.iter().enumerate() {
             assert!(!seen[s as usize], "{off}: cell {s} twice");
