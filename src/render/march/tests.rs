@@ -698,3 +698,67 @@ fn a_suns_depth_along_a_step_follows_a_parabola_and_never_overshoots() {
     }
     assert_eq!((edge(0.25), edge(1.0)), (0.0, 4.0));
 }
+
+#[test]
+fn a_split_step_across_a_shadows_edge_reads_each_sub_steps_depth() {
+    // A slab lit from straight above, its half x < 16 under an occluder eight voxels over it. A
+    // thick step along x through x = 16 crosses the shadow's edge: the sun's depth falls from the
+    // occluder's and the slab's to the slab's alone within the step, which no parabola through the
+    // step's ends and midpoint follows, so each sub-step reads its own depth (`MAX_BEND`).
+    let mut g = block_box(IVec3::new(32, 32, 24));
+    for x in [0, 8] {
+        for y in [0, 8, 16, 24] {
+            g.insert_tile(TileLevel::Block, IVec3::new(x, y, 32), 1.0);
+        }
+    }
+    let field = DensityField::new(g);
+    let sigma_t = 2.0f32;
+    let shadow = ShadowVolume::build(&field, sigma_t, Vec3::Z);
+    let mut sampler = field.sampler();
+    let mut cursor = ShadowCursor::default();
+    let (p, span) = (Vec3::new(16.0, 16.5, 20.5), Vec3::X);
+    let rho = sampler.sample(p);
+    let tau = sigma_t * rho;
+    let step = Step {
+        p,
+        span,
+        rho,
+        front: 1.0,
+        scatter: 0.8,
+        tau,
+        tr: (-tau).exp(),
+    };
+    let mut depth_at =
+        |s: f32| shadow.optical_depth(p + span * (s - 0.5), 1.0, &mut sampler, &mut cursor);
+    let (start, middle, end) = (depth_at(0.0), depth_at(0.5), depth_at(1.0));
+    assert!(
+        (start + end - 2.0 * middle).abs() > MAX_BEND,
+        "{start} {middle} {end}"
+    );
+    // The step's sun light summed over its sub-steps (uniform density: equal shares of τ), from
+    // each sub-step's own depth, and from the parabola through the three.
+    let n = (tau / MAX_STEP_DEPTH).ceil() as usize;
+    let sum = |depth: &mut dyn FnMut(f32) -> f32| {
+        let sub_tr = (-tau / n as f32).exp();
+        let (mut tr, mut sum) = (1.0f32, 0.0f32);
+        for j in 0..n {
+            sum += tr * (1.0 - sub_tr) * (-depth((j as f32 + 0.5) / n as f32)).exp();
+            tr *= sub_tr;
+        }
+        step.scatter * sum
+    };
+    let looked_up = sum(&mut depth_at);
+    let along = sun_depth_along(start, middle, end);
+    let parabola = sum(&mut |s| along(s));
+    assert!(
+        (parabola / looked_up - 1.0).abs() > 0.05,
+        "{parabola} vs {looked_up}"
+    );
+    let got = Split {
+        step: &step,
+        volume: &shadow,
+        middle,
+    }
+    .light(&mut field.sampler(), &mut ShadowCursor::default());
+    assert!((got / looked_up - 1.0).abs() < 1e-5, "{got} vs {looked_up}");
+}
