@@ -338,7 +338,7 @@ struct Link {
 const LINE_START: u32 = 1 << 31;
 /// Marks a reflecting cell's link in [`Link::node`]: its λ_j is in [`Links::reflectance`]. Most
 /// cells reflect nothing, and a sweep streams every link once a generation: a λ in every link
-/// was a fifth of the bytes a sun's solve reads.
+/// would add a fifth to the bytes a sun's solve streams.
 const REFLECTS: u32 = 1 << 30;
 /// The slot in [`Link::node`]: a layout holds far fewer than 2³⁰ cells.
 const SLOT: u32 = REFLECTS - 1;
@@ -357,7 +357,7 @@ pub(crate) const PARALLEL_SWEEP_LINKS: usize = 1 << 16;
 /// Cells whose links are computed together before they are written to their sweeps: the block's
 /// links (26 × 20 bytes a cell) and λs (26 × 4) are all the building holds beyond the sweeps
 /// themselves, 5 MiB. A block four times larger took the fixture cloud's default render (its
-/// suns' lattice on 223 749 voxels) 13 MiB higher, 177 against 164 MiB, in the same time.
+/// suns' lattice on 223 749 voxels) 13 MiB higher, 173 against 160 MiB, in the same time.
 const LINK_BLOCK: usize = 1 << 13;
 
 /// One direction's links. A *line* is the active cells on one lattice line along d_j in
@@ -811,14 +811,13 @@ fn segment_pair(
 /// density as collisions are, escapes past its end (ε) and crosses the node (η).
 fn segment(rho: &[f32], exits: &[(f32, f32)], length: f32, depth_per_density: f32) -> Segment {
     let depth = |r: &f32| depth_per_density * r;
-    // The whole depth; the node sits at the end of sub-step steps/2 − 1.
+    // The whole depth τ; the node sits at the end of sub-step steps/2 − 1, at depth τ½.
     let node = rho.len() / 2;
     let tau: f32 = rho.iter().map(depth).sum();
     // Emission in sub-step i, weighted by ρ_i: the share escaping past the end, e^(−(τ − end_i)),
-    // and upstream of the node the share crossing it, e^(−(half − end_i)): products of the
+    // and upstream of the node the share crossing it, e^(−(τ½ − end_i)): products of the
     // sub-steps' own transmittances downstream, from the end back. Run to the start, the two
-    // products are the segment's e^(−τ) and e^(−half) themselves, with no exponential of their
-    // own (two of the three a sub-step-short segment took).
+    // products are the segment's e^(−τ) and e^(−τ½) themselves: no exponential of their own.
     let (mut weight, mut escape, mut crossing) = (0.0f32, 0.0f32, 0.0f32);
     let (mut to_end, mut to_node) = (1.0f32, 1.0f32);
     for (i, (r, &(through, leaving))) in rho.iter().zip(exits).enumerate().rev() {
