@@ -381,8 +381,9 @@ struct Links {
     /// Per cell, its row in the reflected-light buffers (`NO_LINK`: it reflects nothing).
     reflecting: Vec<u32>,
     reflecting_cells: usize,
-    /// λ_j per reflecting cell (its row) and direction, `row × D + j`: the share of the flux
-    /// entering the cell along d_j that it sends straight back along −d_j.
+    /// λ_j per direction and reflecting cell (its row), `j × reflecting_cells + row`: the share
+    /// of the flux entering the cell along d_j that it sends straight back along −d_j. A sweep
+    /// reads one direction's run, which stays in cache where a cell's whole record would not.
     reflectance: Vec<f32>,
     /// Whether a sweep's tasks run in parallel ([`PARALLEL_SWEEP_LINKS`]).
     parallel_sweeps: bool,
@@ -465,6 +466,12 @@ fn build_links(
                 }
             });
     }
+    // Gathered a cell at a time, kept a direction at a time.
+    let rows = reflectance.len() / d.max(1);
+    let reflectance: Vec<f32> = (0..d)
+        .flat_map(|j| (0..rows).map(move |row| (j, row)))
+        .map(|(j, row)| reflectance[row * d + j])
+        .collect();
     let mut reflecting_cells = 0;
     let reflecting = reflects
         .iter()
@@ -943,7 +950,6 @@ fn sweep<R: Lanes, const INFLOW: bool>(
     c0: usize,
 ) -> f64 {
     let sweep = &links.sweeps[j];
-    let d = links.sweeps.len();
     // The pair's buffers are one run of rows, a reflecting cell's row in it: a sweep touches one
     // pair's rows only, so they share no cache line with the other pairs'.
     let waiting = links.pair[j] * links.reflecting_cells;
@@ -968,7 +974,7 @@ fn sweep<R: Lanes, const INFLOW: bool>(
             let (row, lambda) = match reflects {
                 true => {
                     let row = links.reflecting[cell] as usize;
-                    (row, links.reflectance[row * d + j])
+                    (row, links.reflectance[j * links.reflecting_cells + row])
                 }
                 false => (0, 0.0),
             };
