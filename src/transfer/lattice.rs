@@ -100,6 +100,7 @@ use glam::{IVec3, Vec3, Vec4};
 use rayon::prelude::*;
 
 use super::layout::TransferLayout;
+use super::memory::sun_krylov_bytes;
 use super::Medium;
 use crate::volume::bricks::BrickSampler;
 use crate::volume::DensityField;
@@ -1257,8 +1258,82 @@ impl Lattice {
             bands: 1,
             medium: self.medium,
         };
-        transport_chunk::<f32>(&self.links, &first, Drive::Emission(emission), None).0
+        let links = &self.links;
+        let (n, d) = (links.sweeps[0].links.len(), links.sweeps.len());
+        let reflecting = links.reflecting_cells as f64 / n.max(1) as f64;
+        match sun_krylov_bytes(n as u64, d, reflecting) {
+            Some(_) => solve_krylov(links, self.medium.albedo, emission),
+            None => transport_chunk::<f32>(links, &first, Drive::Emission(emission), None).0,
+        }
     }
+}
+
+/// Basis vectors a sun's GMRES solve keeps before it restarts. Measured on the fixture cloud's
+/// suns' lattice (223 749 voxel nodes, the README's default render) at albedo 0.99 / 1: 39 / 95
+/// applications of a generation at 8, 34 / 74 at 12, 33 / 58 at 20, 31 / 56 at 40.
+pub(crate) const RESTART: usize = 20;
+/// Relative residual at which a sun's GMRES solve stops. Against solves to 1e-6, the fixture
+/// cloud's default render (640×360) at albedo 0.9 / 0.99 / 1 is 0.00 / 0.00 / 0.00 % off at 1e-4
+/// (13 / 33 / 58 applications) and 0.00 / 0.01 / 0.04 % at 1e-3, as the generations stopped by
+/// [`CONVERGENCE`] are (23 generations at 0.9).
+const KRYLOV_TOLERANCE: f64 = 1e-4;
+
+/// A sun's fluence by GMRES ([`crate::math::krylov`]): the total emission X of every generation
+/// solves X = A·X + Q, A one generation (what a node's emission and a reflecting cell's waiting
+/// light make of the next); the fluence is then what one more sweep reads of X. The generations'
+/// sum converges as A's largest eigenvalue, near 1 in a bright medium of thin cells, and GMRES
+/// takes a fraction of the sweeps: on the fixture cloud's voxels 13 / 33 / 58 applications
+/// against 23 / 183 / 797 generations at albedo 0.9 / 0.99 / 1.
+/// X is held at 0 or above before it is read, as the exact one is, so F ≥ 0.
+fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> Vec<f32> {
+    let n = links.sweeps[0].links.len();
+    let d = links.sweeps.len();
+    let mut state = State {
+        nodes: vec![0f32; n * NODE_ROWS],
+        emitting: 0,
+        reflected: vec![0f32; links.reflecting_cells * (d / 2)],
+    };
+    let mut b = vec![0f32; n + state.reflected.len()];
+    b[..n].copy_from_slice(emission);
+    let (mut total, _) = crate::math::krylov::solve_fixed_point(
+        &b,
+        RESTART,
+        KRYLOV_TOLERANCE,
+        MAX_GENERATIONS,
+        |v, out| generation(links, &mut state, albedo, v, out),
+    );
+    total.iter_mut().for_each(|x| *x = x.max(0.0));
+    state
+        .nodes
+        .chunks_exact_mut(NODE_ROWS)
+        .for_each(|node| node[FLUENCE] = 0.0);
+    let mut next = vec![0f32; total.len()];
+    generation(links, &mut state, albedo, &total, &mut next);
+    state
+        .nodes
+        .chunks_exact(NODE_ROWS)
+        .map(|node| node[FLUENCE])
+        .collect()
+}
+
+/// One generation of a scalar transport from `v` (per node the emission, then per reflecting
+/// cell and pair of directions the light waiting to leave) into `out` (the next generation's);
+/// the fluence it reads is added to the nodes' fluence rows.
+fn generation(links: &Links, state: &mut State<f32>, albedo: f32, v: &[f32], out: &mut [f32]) {
+    let n = links.sweeps[0].links.len();
+    state.emitting = 0;
+    for (node, &e) in state.nodes.chunks_exact_mut(NODE_ROWS).zip(&v[..n]) {
+        node[0] = e;
+        node[1] = 0.0;
+    }
+    state.reflected.copy_from_slice(&v[n..]);
+    for j in 0..links.sweeps.len() {
+        sweep::<f32, false>(links, j, state, 0.0, albedo, 0);
+    }
+    for (o, node) in out[..n].iter_mut().zip(state.nodes.chunks_exact(NODE_ROWS)) {
+        *o = node[1];
+    }
+    out[n..].copy_from_slice(&state.reflected);
 }
 
 #[cfg(test)]
