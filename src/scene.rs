@@ -82,6 +82,8 @@ pub struct LightReport {
     /// The suns' lattice: its nodes and its cells' edge in density voxels (0 without one).
     pub lattice_nodes: usize,
     pub lattice_edge: i32,
+    /// Generations the new suns' solves swept, summed.
+    pub lattice_sweeps: usize,
     /// Building the density's bricks for this render (0 when built before or not built).
     pub brick_seconds: f64,
 }
@@ -410,6 +412,7 @@ impl Scene {
                 ));
                 report.shadow_seconds += light.shadow_seconds;
                 report.lattice_seconds += light.lattice_seconds;
+                report.lattice_sweeps += light.multiple.as_ref().map_or(0, |m| m.sweeps);
                 kept.push(light.clone());
                 light
             })

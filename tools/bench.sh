@@ -246,7 +246,7 @@ section_sun() {
     printf "%-30s %9s %9s %8s %-22s %s\n" "wall, median of $RUNS" "$m1" "$m2" "$r" "$(verdict "$r" "<=" 1.5)" "$LOAD"
     r=$(ratio "$moved" "$still")
     printf "%-30s %9s %9s %8s %-22s %s\n" "shadow+lattice+relight+march" "$moved" "$still" "$r" "$(verdict "$r" "<=" 1.5)" "$LOAD"
-    echo "   with sun: shadow $(j sun_with sun_shadow_seconds %.3f) s, lattice $(j sun_with sun_lattice_seconds %.3f) s, march $(j sun_with march_seconds %.3f) s; without: march $(j sun_without march_seconds %.3f) s"
+    echo "   with sun: shadow $(j sun_with sun_shadow_seconds %.3f) s, lattice $(j sun_with sun_lattice_seconds %.3f) s ($(j sun_with sun_lattice_sweeps %d) sweeps), march $(j sun_with march_seconds %.3f) s; without: march $(j sun_without march_seconds %.3f) s"
     local bytes active; bytes=$(j sun_with sun_bytes); active=$(info_field "$CL" active_voxels)
     echo "   shadow volume + fluence: $(mib "$bytes") MiB for $active active voxels = $(awk -v b="$bytes" -v n="$active" 'BEGIN{ printf "%.1f", b/n }') bytes per active voxel"
     echo "-- one sun (--light 0.3,0.3,0, vdb_render's default) from the cache vs vdb_render, same camera (target: ratio <= 0.5)"

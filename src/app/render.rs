@@ -595,6 +595,7 @@ fn transfer(
     stats["sun_bytes"] = json!(suns.bytes);
     stats["sun_lattice_nodes"] = json!(suns.lattice_nodes);
     stats["sun_lattice_edge"] = json!(suns.lattice_edge);
+    stats["sun_lattice_sweeps"] = json!(suns.lattice_sweeps);
     stats["march_seconds"] = json!(report.march.as_secs_f64());
     stats["rays"] = json!(march.rays);
     stats["samples_taken"] = json!(march.samples_taken);

@@ -107,6 +107,8 @@ impl SunLattice {
 pub struct SunFluence {
     pub layout: Arc<TransferLayout>,
     pub fluence: Vec<f32>,
+    /// How many generations its solve swept ([`Lattice::solve_emission`]).
+    pub sweeps: usize,
 }
 
 /// A sun's light on one volume.
@@ -133,9 +135,11 @@ impl SunLight {
         let clock = Instant::now();
         let multiple = lattice.map(|l| {
             let seed = first_scattering(field, &l.layout, &shadow, medium);
+            let (fluence, sweeps) = l.lattice.solve_emission(&seed);
             SunFluence {
                 layout: l.layout.clone(),
-                fluence: l.lattice.solve_emission(&seed),
+                fluence,
+                sweeps,
             }
         });
         SunLight {

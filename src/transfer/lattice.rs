@@ -1248,8 +1248,9 @@ impl Lattice {
     /// the power node x scatters per cell volume (albedo × collision density, e.g. σs·Tr_sun·E of
     /// a sun at E = 1). Returns the fluence per node of light scattered once or more — that first
     /// scattering included, as it leaves its cell. Non-negative wherever the emission is. The
-    /// links do not depend on the light, so one lattice solves every sun of a render.
-    pub fn solve_emission(&self, emission: &[f32]) -> Vec<f32> {
+    /// links do not depend on the light, so one lattice solves every sun of a render. Also
+    /// returns how many times the solve swept every direction (a generation each).
+    pub fn solve_emission(&self, emission: &[f32]) -> (Vec<f32>, usize) {
         // The energy criterion weighs what remains against the total: the first scattering
         // stands for the "single" part here.
         let first = Source {
@@ -1263,7 +1264,11 @@ impl Lattice {
         let reflecting = links.reflecting_cells as f64 / n.max(1) as f64;
         match sun_krylov_bytes(n as u64, d, reflecting) {
             Some(_) => solve_krylov(links, self.medium.albedo, emission),
-            None => transport_chunk::<f32>(links, &first, Drive::Emission(emission), None).0,
+            None => {
+                let (fluence, stats) =
+                    transport_chunk::<f32>(links, &first, Drive::Emission(emission), None);
+                (fluence, stats.generations)
+            }
         }
     }
 }
@@ -1284,8 +1289,9 @@ const KRYLOV_TOLERANCE: f64 = 1e-4;
 /// sum converges as A's largest eigenvalue, near 1 in a bright medium of thin cells, and GMRES
 /// takes a fraction of the sweeps: on the fixture cloud's voxels 13 / 33 / 58 applications
 /// against 23 / 183 / 797 generations at albedo 0.9 / 0.99 / 1.
-/// X is held at 0 or above before it is read, as the exact one is, so F ≥ 0.
-fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> Vec<f32> {
+/// X is held at 0 or above before it is read, as the exact one is, so F ≥ 0. Returns F and the
+/// generations swept, the reading's included.
+fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> (Vec<f32>, usize) {
     let n = links.sweeps[0].links.len();
     let d = links.sweeps.len();
     let mut state = State {
@@ -1295,7 +1301,7 @@ fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> Vec<f32> {
     };
     let mut b = vec![0f32; n + state.reflected.len()];
     b[..n].copy_from_slice(emission);
-    let (mut total, _) = crate::math::krylov::solve_fixed_point(
+    let (mut total, solved) = crate::math::krylov::solve_fixed_point(
         &b,
         RESTART,
         KRYLOV_TOLERANCE,
@@ -1309,11 +1315,12 @@ fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> Vec<f32> {
         .for_each(|node| node[FLUENCE] = 0.0);
     let mut next = vec![0f32; total.len()];
     generation(links, &mut state, albedo, &total, &mut next);
-    state
+    let fluence = state
         .nodes
         .chunks_exact(NODE_ROWS)
         .map(|node| node[FLUENCE])
-        .collect()
+        .collect();
+    (fluence, solved.applications + 1)
 }
 
 /// One generation of a scalar transport from `v` (per node the emission, then per reflecting
