@@ -94,7 +94,10 @@
 //! generation's fluence is nearly the previous one's times r (the transport's slowest-decaying
 //! mode), so the tail's shape is right to well within its own small size, and half the
 //! generations reach the accuracy that stopping without it needed. The other coefficients' runs
-//! stop after the DC run's generations and add the tail with its r.
+//! stop after the DC run's generations and add the tail with its r. A sun's scalar solve
+//! ([`Lattice::solve_emission`]) finds the sum of its generations by GMRES instead wherever that
+//! fits beside the links ([`solve_krylov`]): on thin, bright cells the ratio r nears 1 and the
+//! generations run into the hundreds.
 
 use glam::{IVec3, Vec3, Vec4};
 use rayon::prelude::*;

@@ -239,7 +239,8 @@ fn transport_bytes(voxels: usize, directions: usize, reflecting: f64, row_bytes:
 
 /// Working memory of one sun's multiple-scattering solve on a lattice of `directions` over
 /// `transfer_voxels` ([`lattice::solve_emission`]), `reflecting` the share of cells that reflect:
-/// its links while they are built, or beside the transport of its one value a node.
+/// its links while they are built, or beside the transport of its one value a node and, where
+/// GMRES solves it, GMRES's vectors ([`sun_krylov_bytes`]).
 pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f64) -> u64 {
     let links = link_bytes(transfer_voxels as u64, directions, reflecting);
     let build = transfer_voxels as u64 * directions as u64 * LINK_PLACE_BYTES;
@@ -258,9 +259,11 @@ pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f6
 /// would weigh more than the links, and the solve sums generations instead. Its state is a
 /// node's emission and a reflecting cell's waiting light per pair of directions: 4 bytes a node
 /// where no cell reflects (96 for GMRES's vectors, against 520 of links), up to 56 where every
-/// cell does (1344). There the generations converge fast anyway, reflected light staying near its
-/// cell: ratios of 0.59–0.67 and 10–13 generations on the bench cloud's cells of 3 and the
-/// fixture cloud's voxels at σt 3.
+/// cell does (1344). Where most cells reflect, reflected light stays near its cell and the
+/// generations converge fast at albedo 0.9 (10–13 of them on the bench cloud's cells of 3 and the
+/// fixture cloud's voxels at σt 3); at 0.99 GMRES would halve the solve there (the fixture at
+/// σt 3: 4.3 → 2.0 s) but raise the peak by about as much as the links weigh (115 → 178 MiB on
+/// the bench cloud).
 pub fn sun_krylov_bytes(nodes: u64, directions: usize, reflecting: f64) -> Option<u64> {
     let state = nodes as f64 * (1.0 + reflecting * (directions / 2) as f64);
     let bytes =
