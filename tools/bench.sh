@@ -7,7 +7,8 @@
 #               relight time, 2048×1024 HDRI projection, sparse (helix) vs compact march time;
 #               cloud_half (its default q8 and exact f32 caches) vs vdb_render too with SCALE_HALF=1
 #   sun         issue 13: a moved sun vs no sun (1920×1080, cloud_large), one sun vs vdb_render with
-#               the same light, shadow-volume bytes per active voxel
+#               the same light, shadow-volume bytes per active voxel, the README default render at
+#               albedo 0.9 and 0.99 (suns' lattice seconds and sweeps)
 #   batch       issue 14: 24 frames of a 128³ cloud — `batch` vs the sum of single `bake` runs (and the
 #               same for the 12 small fixture frames); a 24-frame 1280×720 orbit from the caches and
 #               one cache under 4 maps (frames per second); the frame-to-frame difference of a still
@@ -220,7 +221,8 @@ section_render() {
 # One sun on the cloud_large cache (σt 1.6), 1920×1080: a render whose sun has moved — a new
 # shadow volume and lattice solve, relight and march, as every new process does — against the
 # same render with the sun left in the sky's map (no sun light); one sun against vdb_render with
-# the same light direction (its default, 0.3,0.3,0); the suns' bytes per active voxel.
+# the same light direction (its default, 0.3,0.3,0); the suns' bytes per active voxel; the
+# README's default render at albedo 0.9 and 0.99 (its suns' lattice time and sweeps).
 section_sun() {
     need_tools; build_vscatter; ensure_inputs
     command -v vdb_render >/dev/null || apt_install libopenvdb-tools
@@ -252,6 +254,17 @@ section_sun() {
     echo "-- one sun (--light 0.3,0.3,0, vdb_render's default) from the cache vs vdb_render, same camera (target: ratio <= 0.5)"
     printf "%-12s %9s %9s %8s %-22s %8s %8s %6s %6s %8s %8s %8s  %-20s %s\n" input vscatter_s vdb_rend_s ratio verdict vs_rssMB vr_rssMB vs_cpu vr_cpu march_s write_s read_s timing "load (vscatter | after)"
     compare_peer cloud_large "$CL" 0.5 --light 0.3,0.3,0
+    # The README's default render: its suns' lattice is on the fixture's own voxels, where the
+    # solve is GMRES and the generations it replaces run into the hundreds at high albedo.
+    echo "-- the README's default render (fixtures/cloud.vdb, built-in sky, 640x360): the suns' lattice by albedo (reported)"
+    printf "%-8s %10s %10s %8s %9s  %s\n" albedo wall_s lattice_s sweeps rss_MB load
+    local albedo
+    for albedo in 0.9 0.99; do
+        run_timed "default_$albedo" "$VS" render fixtures/cloud.vdb -o "$BENCH_OUT/default_$albedo.exr" \
+            --albedo "$albedo" --quiet --stats
+        printf "%-8s %10s %10s %8s %9s  %s\n" "$albedo" "$WALL" "$(j "default_$albedo" sun_lattice_seconds %.3f)" \
+            "$(j "default_$albedo" sun_lattice_sweeps %d)" "$RSS_MB" "$LOAD"
+    done
 }
 
 # ---------------------------------------------------------------------------------------------
