@@ -29,7 +29,7 @@ pub struct Solved {
 /// Solves x = A·x + b to a relative residual `tolerance`, `restart` basis vectors at a time, with
 /// at most `max_applications` calls of `apply(v, out)`, which must write A·v into `out`. Starts
 /// from x = b, the first term of the generations' sum. Holds `restart` + 4 vectors as long as `b`
-/// ([`working_vectors`]).
+/// besides `b` ([`working_vectors`]).
 pub fn solve_fixed_point(
     b: &[f32],
     restart: usize,
@@ -116,7 +116,12 @@ pub fn solve_fixed_point(
         let mut y = vec![0f64; m];
         for i in (0..m).rev() {
             let sum: f64 = (i + 1..m).map(|j| h[j][i] * y[j]).sum();
-            y[i] = (g[i] - sum) / h[i][i];
+            // A zero pivot (a map with 1 as an eigenvalue, which no absorbing medium has) adds
+            // nothing rather than infinities.
+            y[i] = match h[i][i] != 0.0 {
+                true => (g[i] - sum) / h[i][i],
+                false => 0.0,
+            };
         }
         for (v, &yi) in basis.iter().zip(&y) {
             update(&mut x, |i, xi| xi + (yi * v[i] as f64) as f32);
@@ -129,10 +134,10 @@ pub fn solve_fixed_point(
     (x, solved)
 }
 
-/// Vectors as long as `b` that [`solve_fixed_point`] holds with `restart` basis vectors: the
-/// basis, the solution, A's image and the residual or new vector being orthogonalised.
+/// Vectors as long as `b` that a solve with `restart` basis vectors takes, `b` included: the basis
+/// (`restart` + 1), the solution, A's image and the vector being orthogonalised.
 pub fn working_vectors(restart: usize) -> usize {
-    restart.max(1) + 4
+    restart.max(1) + 5
 }
 
 /// Σ a·b in f64, summed chunk by chunk in a fixed order.

@@ -258,8 +258,8 @@ pub fn sun_solve_bytes(transfer_voxels: usize, directions: usize, reflecting: f6
 /// `reflecting` the share of cells that reflect ([`lattice::solve_emission`]); `None` where they
 /// would weigh more than the links, and the solve sums generations instead. Its state is a
 /// node's emission and a reflecting cell's waiting light per pair of directions: 4 bytes a node
-/// where no cell reflects (96 for GMRES's vectors, against 520 of links), up to 56 where every
-/// cell does (1344). Where most cells reflect, reflected light stays near its cell and the
+/// where no cell reflects (100 for GMRES's vectors, against 520 of links), up to 56 where every
+/// cell does (1400). Where most cells reflect, reflected light stays near its cell and the
 /// generations converge fast at albedo 0.9 (10–13 of them on the bench cloud's cells of 3 and the
 /// fixture cloud's voxels at σt 3); at 0.99 GMRES would halve the solve there (the fixture at
 /// σt 3: 4.3 → 2.0 s) but raise the peak by about as much as the links weigh (115 → 178 MiB on
