@@ -1023,6 +1023,28 @@ fn sweep<R: Lanes, const INFLOW: bool>(
     added.iter().sum()
 }
 
+/// One generation: every direction swept once from the emission in `state`, into the next
+/// generation's row, which then becomes the emission. `inflow(j)`: the environment's light
+/// entering direction j's lines (generation 0). Returns the DC fluence read ([`sweep`]).
+fn sweep_generation<R: Lanes, const INFLOW: bool>(
+    links: &Links,
+    state: &mut State<R>,
+    albedo: f32,
+    c0: usize,
+    inflow: impl Fn(usize) -> R,
+) -> f64 {
+    let next = 1 - state.emitting;
+    state
+        .nodes
+        .chunks_exact_mut(NODE_ROWS)
+        .for_each(|node| node[next] = R::ZERO);
+    let added = (0..links.sweeps.len()).fold(0.0, |added, j| {
+        added + sweep::<R, INFLOW>(links, j, state, inflow(j), albedo, c0)
+    });
+    state.emitting = next;
+    added
+}
+
 /// Transports one drive; stops by the energy criterion when `stop` is `None` (the chunk holding
 /// the DC term, or a sun), else runs exactly the generations of `stop`. Returns the fluence per
 /// node (its first `width` lanes), with the tail of the generations not swept added (module doc).
@@ -1070,22 +1092,12 @@ fn transport_chunk<R: Lanes>(
         // (`emit` starts at zero) and is not read out, since T_ri stands for it; only what thick
         // cells reflect of it is.
         let inflow = generation == 0;
-        let next = 1 - state.emitting;
-        state
-            .nodes
-            .chunks_exact_mut(NODE_ROWS)
-            .for_each(|node| node[next] = R::ZERO);
-        let mut added = 0.0f64;
-        for j in 0..d {
-            added += match inflow {
-                true => {
-                    let p = R::from_values(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width]);
-                    sweep::<R, true>(links, j, &mut state, p, albedo, c0)
-                }
-                false => sweep::<R, false>(links, j, &mut state, R::ZERO, albedo, c0),
-            };
-        }
-        state.emitting = next;
+        let added = match inflow {
+            true => sweep_generation::<R, true>(links, &mut state, albedo, c0, |j| {
+                R::from_values(&links.inflow[j * coeffs + c0..j * coeffs + c0 + width])
+            }),
+            false => sweep_generation::<R, false>(links, &mut state, albedo, c0, |_| R::ZERO),
+        };
         stats.generations = generation;
         if stop.is_none() {
             stats.energy_multiple += added;
@@ -1254,6 +1266,12 @@ impl Lattice {
     /// links do not depend on the light, so one lattice solves every sun of a render. Also
     /// returns how many times the solve swept every direction (a generation each).
     pub fn solve_emission(&self, emission: &[f32]) -> (Vec<f32>, usize) {
+        let links = &self.links;
+        let (n, d) = (links.sweeps[0].links.len(), links.sweeps.len());
+        let reflecting = links.reflecting_cells as f64 / n.max(1) as f64;
+        if sun_krylov_bytes(n as u64, d, reflecting).is_some() {
+            return solve_krylov(links, self.medium.albedo, emission);
+        }
         // The energy criterion weighs what remains against the total: the first scattering
         // stands for the "single" part here.
         let first = Source {
@@ -1262,17 +1280,9 @@ impl Lattice {
             bands: 1,
             medium: self.medium,
         };
-        let links = &self.links;
-        let (n, d) = (links.sweeps[0].links.len(), links.sweeps.len());
-        let reflecting = links.reflecting_cells as f64 / n.max(1) as f64;
-        match sun_krylov_bytes(n as u64, d, reflecting) {
-            Some(_) => solve_krylov(links, self.medium.albedo, emission),
-            None => {
-                let (fluence, stats) =
-                    transport_chunk::<f32>(links, &first, Drive::Emission(emission), None);
-                (fluence, stats.generations)
-            }
-        }
+        let (fluence, stats) =
+            transport_chunk::<f32>(links, &first, Drive::Emission(emission), None);
+        (fluence, stats.generations)
     }
 }
 
@@ -1309,15 +1319,25 @@ fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> (Vec<f32>, usiz
         RESTART,
         KRYLOV_TOLERANCE,
         MAX_GENERATIONS,
-        |v, out| generation(links, &mut state, albedo, v, out),
+        |v, out| {
+            load(&mut state, v);
+            sweep_generation::<f32, false>(links, &mut state, albedo, 0, |_| 0.0);
+            // The next generation's emission, and the light still waiting to leave.
+            let (emission, waiting) = out.split_at_mut(n);
+            for (o, node) in emission.iter_mut().zip(state.nodes.chunks_exact(NODE_ROWS)) {
+                *o = node[state.emitting];
+            }
+            waiting.copy_from_slice(&state.reflected);
+        },
     );
     total.iter_mut().for_each(|x| *x = x.max(0.0));
+    // The reading: one more generation from X, its fluence alone kept.
+    load(&mut state, &total);
     state
         .nodes
         .chunks_exact_mut(NODE_ROWS)
         .for_each(|node| node[FLUENCE] = 0.0);
-    let mut next = vec![0f32; total.len()];
-    generation(links, &mut state, albedo, &total, &mut next);
+    sweep_generation::<f32, false>(links, &mut state, albedo, 0, |_| 0.0);
     let fluence = state
         .nodes
         .chunks_exact(NODE_ROWS)
@@ -1326,24 +1346,14 @@ fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> (Vec<f32>, usiz
     (fluence, solved.applications + 1)
 }
 
-/// One generation of a scalar transport from `v` (per node the emission, then per reflecting
-/// cell and pair of directions the light waiting to leave) into `out` (the next generation's);
-/// the fluence it reads is added to the nodes' fluence rows.
-fn generation(links: &Links, state: &mut State<f32>, albedo: f32, v: &[f32], out: &mut [f32]) {
-    let n = links.sweeps[0].links.len();
-    state.emitting = 0;
-    for (node, &e) in state.nodes.chunks_exact_mut(NODE_ROWS).zip(&v[..n]) {
-        node[0] = e;
-        node[1] = 0.0;
+/// Makes `v` the state a scalar generation starts from: per node the emission, then per
+/// reflecting cell and pair of directions the light waiting to leave.
+fn load(state: &mut State<f32>, v: &[f32]) {
+    let (emission, waiting) = v.split_at(state.nodes.len() / NODE_ROWS);
+    for (node, &e) in state.nodes.chunks_exact_mut(NODE_ROWS).zip(emission) {
+        node[state.emitting] = e;
     }
-    state.reflected.copy_from_slice(&v[n..]);
-    for j in 0..links.sweeps.len() {
-        sweep::<f32, false>(links, j, state, 0.0, albedo, 0);
-    }
-    for (o, node) in out[..n].iter_mut().zip(state.nodes.chunks_exact(NODE_ROWS)) {
-        *o = node[1];
-    }
-    out[n..].copy_from_slice(&state.reflected);
+    state.reflected.copy_from_slice(waiting);
 }
 
 #[cfg(test)]
