@@ -219,15 +219,10 @@ pub fn bake_single(
                         // darker against the path tracer (studio, σt 0.36–1).
                         let tent = |q: Vec3| super::fit::tent(q - x, k);
                         let step = settings.chord_step;
-                        // Two instances, so a bake without a visibility folds g = 1 away.
-                        let mean = match visibility.as_mut() {
-                            None => {
-                                depth.chord_mean(*p, *d, footprint, step, |q, _| (tent(q), 1.0))
-                            }
-                            Some(s) => depth.chord_mean(*p, *d, footprint, step, |q, rho| {
-                                (tent(q), super::fit::importance(s, q, rho))
-                            }),
-                        };
+                        let importance = visibility
+                            .as_mut()
+                            .map(|s| |q, rho| super::fit::importance(s, q, rho));
+                        let mean = depth.chord_mean(*p, *d, footprint, step, tent, importance);
                         *t = mean.map_or_else(
                             || depth.transmittance(*p, *d),
                             |m| m * starts.mean_importance,

@@ -127,22 +127,28 @@ impl<'a> OpticalDepth<'a> {
 
     /// The mean transmittance toward world direction `dir` (unit) along the chord of the index box
     /// `[lo, hi]` through index point `origin`, weighted by ρ·w: ∫ ρ·w·T ds / ∫ ρ·w·g ds over the
-    /// chord, where `weight` gives (w, g) at a point of density ρ — g ≡ 1 for the plain mean, or
-    /// the density that drew the chord's start over ρ·w (an importance estimate); `None` where
-    /// the chord holds no weight.
+    /// chord, where `weight` gives w at a point and `importance` g at a point of density ρ — g ≡ 1
+    /// for the plain mean (`None`), or the density that drew the chord's start over ρ·w (an
+    /// importance estimate); `None` where the chord holds no weight.
     ///
     /// One ray from where the chord leaves the box toward `dir` gives the transmittance of
     /// everything beyond it; the chord is then walked back from there, one midpoint sample per
     /// step of at most `step_voxels`, the optical depth growing as it goes. The chord's depth is
     /// integrated, not drawn: inside a thick footprint T runs from 1 to nothing along the light,
     /// and a single point per direction leaves that to chance (docs/model.md, "The transfer").
-    pub fn chord_mean(
+    ///
+    /// A plain mean lies between 0 and the transmittance beyond the chord, so where that ray was
+    /// cut off ([`MIN_TRANSMITTANCE`]) the chord is not walked and the mean is that transmittance,
+    /// as a ray cut off reads: deep in a thick medium most chords are dark, and their walks were a
+    /// quarter of a bake's T_ri at 1.6 optical depths per voxel (docs/benchmarks.md).
+    pub fn chord_mean<G: FnMut(Vec3, f32) -> f32>(
         &self,
         origin: Vec3,
         dir: Vec3,
         (lo, hi): (Vec3, Vec3),
         step_voxels: f32,
-        mut weight: impl FnMut(Vec3, f32) -> (f32, f32),
+        mut weight: impl FnMut(Vec3) -> f32,
+        mut importance: Option<G>,
     ) -> Option<f32> {
         let v = dir * self.inv_scale;
         let (mut enter, mut exit) = (f32::NEG_INFINITY, f32::INFINITY);
@@ -160,6 +166,9 @@ impl<'a> OpticalDepth<'a> {
         }
         // The levels are as wide as a direction's cone from the chord's own start allows.
         let beyond = self.transmittance_beyond(origin + v * exit, dir, exit.max(0.0));
+        if importance.is_none() && beyond <= MIN_TRANSMITTANCE {
+            return Some(beyond);
+        }
         let steps = ((exit - enter) / (step_voxels * self.step)).ceil().max(1.0);
         let step = (exit - enter) / steps;
         let mut sampler = self.field.sampler();
@@ -171,8 +180,8 @@ impl<'a> OpticalDepth<'a> {
             if rho <= 0.0 {
                 continue;
             }
-            let (w, g) = weight(p, rho);
-            let w = rho * w;
+            let w = rho * weight(p);
+            let g = importance.as_mut().map_or(1.0, |g| g(p, rho));
             // T averaged over the step exactly for the density of its midpoint: at an optical
             // depth per step near one, T at the midpoint alone is 1–2 % low.
             let delta = self.sigma_t * rho * step;
@@ -405,18 +414,46 @@ mod tests {
         let d = OpticalDepth::new(&field, sigma, true);
         let box_ = (Vec3::new(150.0, 50.0, 50.0), Vec3::new(170.0, 80.0, 80.0));
         let mean = d
-            .chord_mean(Vec3::new(163.2, 64.0, 64.0), Vec3::X, box_, 1.0, |_, _| {
-                (1.0, 1.0)
-            })
+            .chord_mean(
+                Vec3::new(163.2, 64.0, 64.0),
+                Vec3::X,
+                box_,
+                1.0,
+                |_| 1.0,
+                PLAIN,
+            )
             .unwrap();
         let want = (-sigma * 85.5).exp() * (1.0 - (-20.0 * sigma).exp()) / (20.0 * sigma);
         assert!((mean / want - 1.0).abs() < 1e-3, "{mean} vs {want}");
         // A chord that misses the box holds nothing.
         let outside = Vec3::new(163.2, 90.0, 64.0);
         assert_eq!(
-            d.chord_mean(outside, Vec3::X, box_, 1.0, |_, _| (1.0, 1.0)),
+            d.chord_mean(outside, Vec3::X, box_, 1.0, |_| 1.0, PLAIN),
             None
         );
+    }
+
+    /// No importance: a plain mean.
+    const PLAIN: Option<fn(Vec3, f32) -> f32> = None;
+
+    #[test]
+    fn a_dark_chord_reads_as_a_ray_cut_off() {
+        // Deep in the slab toward +x the light beyond the chord x ∈ [140, 160] has crossed 95
+        // optical depths: the ray is cut off, and a plain mean, which lies between 0 and what
+        // comes from beyond, is what comes from beyond, the chord not walked. An importance
+        // estimate is not bounded so and walks it, darker by the chord's own fall.
+        let field = DensityField::new(slab());
+        let d = OpticalDepth::new(&field, 1.0, true);
+        let box_ = (Vec3::new(140.0, 50.0, 50.0), Vec3::new(160.0, 80.0, 80.0));
+        let origin = Vec3::new(151.3, 64.0, 64.0);
+        let beyond = d.transmittance(Vec3::new(160.0, 64.0, 64.0), Vec3::X);
+        assert!(beyond > 0.0 && beyond <= MIN_TRANSMITTANCE, "{beyond}");
+        let plain = d.chord_mean(origin, Vec3::X, box_, 1.0, |_| 1.0, PLAIN);
+        assert_eq!(plain, Some(beyond));
+        let walked = d
+            .chord_mean(origin, Vec3::X, box_, 1.0, |_| 1.0, Some(|_, _| 1.0))
+            .unwrap();
+        assert!(walked > 0.0 && walked < 0.2 * beyond, "{walked} {beyond}");
     }
 
     #[test]
@@ -438,9 +475,14 @@ mod tests {
         let dir = Vec3::new(-0.9, 0.3, -0.2).normalize();
         let origin = Vec3::new(131.0, 63.0, 65.0);
         let mean = d
-            .chord_mean(origin, dir, (lo, hi), 1.0, |q, _| {
-                (tent(q.as_dvec3()) as f32, 1.0)
-            })
+            .chord_mean(
+                origin,
+                dir,
+                (lo, hi),
+                1.0,
+                |q| tent(q.as_dvec3()) as f32,
+                PLAIN,
+            )
             .unwrap();
         let rho = |x: f64| (x - 127.0).clamp(0.0, 1.0);
         let integral = |x: f64| match x {
