@@ -156,7 +156,9 @@ pub fn bake(
     let chord_step = single::chord_step(&field.grid, medium.sigma_t);
     let single = |field: &DensityField, origins, visibility, bar: &indicatif::ProgressBar| {
         let far = FarField { mip: &mip, near };
-        let depth = OpticalDepth::new(field, medium.sigma_t, true).with_far_field(far);
+        let depth = OpticalDepth::new(field, medium.sigma_t, true)
+            .with_far_field(far)
+            .with_dark_test();
         let single = single::SingleSettings {
             bands: settings.bands,
             samples: settings.samples,

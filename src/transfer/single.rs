@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::layout::TransferLayout;
 use crate::light::sh;
-use crate::volume::transmittance::{FarField, OpticalDepth};
+use crate::volume::transmittance::{FarField, OpticalDepth, MIN_TRANSMITTANCE};
 use crate::volume::visibility::Visibility;
 use crate::volume::SparseGrid;
 
@@ -191,6 +191,18 @@ pub fn bake_single(
         for (row, &slot) in tr.chunks_exact_mut(n).zip(slots) {
             let v = layout.voxels()[slot as usize];
             let x = layout.position(v);
+            // Deep in a thick medium every ray from the node, or from anywhere in its footprint,
+            // is cut off within a few voxels: it reads as a cut-off ray, at most the cutoff. A
+            // footprint mean drawn by the visibility is not bounded by its rays, and is traced.
+            let k = layout.k as f32;
+            let dark = match settings.origins {
+                Origins::Node => depth.all_cut_off(x, x),
+                Origins::Footprint => visibility.is_none() && depth.all_cut_off(x - k, x + k),
+            };
+            if dark {
+                row.fill(MIN_TRANSMITTANCE);
+                continue;
+            }
             let starts = match settings.origins {
                 Origins::Node => None,
                 Origins::Footprint => super::fit::spread_starts(

@@ -3,13 +3,16 @@
 //! the hierarchical DDA ([`Occupancy`]) yields — the same empty-space skipping as the renderer's.
 //! Samples outside spans have zero density, so skipping changes no result.
 
-use glam::Vec3;
+use glam::{IVec3, Vec3};
+use rayon::prelude::*;
 
 use std::ops::ControlFlow;
 
 use crate::math::ray::Ray;
 
 use super::field::DensityField;
+use super::grid::{Block, SparseGrid, LEAF_LOG2, LEAF_VOXELS};
+use super::keys::KeyIndex;
 use super::mip::DensityMip;
 
 /// Step length in voxels: the midpoint rule on a piecewise-trilinear density is accurate to well
@@ -19,6 +22,40 @@ pub const STEP_VOXELS: f32 = 1.0;
 /// Rays stop once transmittance falls below this: what is left cannot change a transfer value by
 /// more than 1e-4 of full visibility.
 pub const MIN_TRANSMITTANCE: f32 = 1e-4;
+
+/// How many times the depth that cuts a ray off a test asks of the density at its maximum
+/// ([`OpticalDepth::all_cut_off`]): a cloud's interior dips below its maximum, and a test that
+/// allows for it reaches further but finds more of the dark interior.
+const DARK_MARGIN: f32 = 1.5;
+/// The farthest, in voxels, the test reads around a ray's origin: a thinner medium needs rays too
+/// long for the test to pay (and marches coarser levels past its first steps, which it does not
+/// bound).
+const MAX_DARK_REACH: f32 = 16.0;
+
+/// Where every ray is cut off close to its origin ([`OpticalDepth::all_cut_off`]).
+struct DarkTest {
+    /// Voxels within this distance of an origin hold what a ray's first n samples read.
+    radius: f32,
+    /// The least density that cuts a ray off within n samples, n = [`DARK_MARGIN`] times what
+    /// the density's maximum needs.
+    needed: f32,
+    /// Per leaf key (voxel >> 3), its least value, 0 for a leaf with an inactive voxel: a block
+    /// with a floor above the needed density is wholly inside the medium and passes at once.
+    floors: KeyIndex<f32>,
+}
+
+impl DarkTest {
+    /// The least density of block `key` (0 outside the medium).
+    fn floor(&self, grid: &SparseGrid, key: IVec3) -> f32 {
+        if let Some(m) = self.floors.get(key) {
+            return m;
+        }
+        match grid.tile_level(key << LEAF_LOG2) {
+            Some(_) => grid.value(key << LEAF_LOG2),
+            None => 0.0,
+        }
+    }
+}
 
 /// Integrates σt·ρ along rays.
 pub struct OpticalDepth<'a> {
@@ -36,6 +73,8 @@ pub struct OpticalDepth<'a> {
     skip_empty: bool,
     /// World distance from a ray's origin before which the occupied spans are not walked.
     walk_from: f64,
+    /// What tells that a box's rays are all cut off (`None`: nothing is told).
+    dark: Option<DarkTest>,
 }
 
 /// The far field of a ray: `near` steps at the fine level, then `near` steps at each coarser level
@@ -75,7 +114,102 @@ impl<'a> OpticalDepth<'a> {
             hi,
             skip_empty,
             walk_from: 0.0,
+            dark: None,
         }
+    }
+
+    /// Readies [`Self::all_cut_off`] where it can pay: the density is marched at its own
+    /// resolution (no coarser levels), and a ray is cut off within [`MAX_DARK_REACH`] voxels at
+    /// the density's maximum over [`DARK_MARGIN`]. Each leaf's least value is gathered.
+    pub fn with_dark_test(self) -> Self {
+        let grid = &self.field.grid;
+        let max = grid.value_stats().map_or(0.0, |s| s.max);
+        let levels = self.far.is_some_and(|f| f.mip.len() > 0);
+        let depth_per_step = self.sigma_t * max * self.step;
+        if levels || depth_per_step <= 0.0 {
+            return self;
+        }
+        let cutoff = -MIN_TRANSMITTANCE.ln();
+        let samples = (DARK_MARGIN * cutoff / depth_per_step).ceil();
+        // Sample k lies within (k + ½)·STEP_VOXELS voxels of its origin (a world step is one
+        // smallest voxel edge), and its trilinear corners within √3 of it.
+        let radius = (samples - 0.5) * STEP_VOXELS + 3f32.sqrt();
+        if radius > MAX_DARK_REACH {
+            return self;
+        }
+        let floors = grid
+            .leaves()
+            .par_iter()
+            .map(|leaf| {
+                let full = leaf.mask.iter().all(|&m| m == u64::MAX);
+                let least = (0..LEAF_VOXELS)
+                    .map(|slot| leaf.values.get(slot))
+                    .fold(f32::INFINITY, f32::min);
+                (leaf.origin >> LEAF_LOG2, if full { least } else { 0.0 })
+            })
+            .collect();
+        let needed = cutoff / (samples * self.sigma_t * self.step);
+        OpticalDepth {
+            dark: Some(DarkTest {
+                radius,
+                needed,
+                floors: KeyIndex::new(floors),
+            }),
+            ..self
+        }
+    }
+
+    /// Whether every ray from every index point of the box `[lo, hi]` is cut off
+    /// ([`MIN_TRANSMITTANCE`]) within its first n samples: where every voxel within the test's
+    /// radius of the box is active and denser than σt·n·Δ needs, those samples alone cut it
+    /// off. `false` where it cannot tell.
+    pub fn all_cut_off(&self, lo: Vec3, hi: Vec3) -> bool {
+        let Some(dark) = &self.dark else {
+            return false;
+        };
+        let grid = &self.field.grid;
+        let r2 = dark.radius * dark.radius;
+        // Squared distance from the voxel box [a, b] to the origins' box.
+        let gap2 = |a: Vec3, b: Vec3| {
+            let gap = (lo - b).max(a - hi).max(Vec3::ZERO);
+            gap.length_squared()
+        };
+        let reach = dark.radius.ceil() as i32;
+        let from = (lo.floor().as_ivec3() - reach) >> LEAF_LOG2;
+        let to = (hi.ceil().as_ivec3() + reach) >> LEAF_LOG2;
+        let edge = (1 << LEAF_LOG2) - 1;
+        for x in from.x..=to.x {
+            for y in from.y..=to.y {
+                for z in from.z..=to.z {
+                    let key = IVec3::new(x, y, z);
+                    let origin = key << LEAF_LOG2;
+                    let (a, b) = (origin.as_vec3(), (origin + edge).as_vec3());
+                    if gap2(a, b) > r2 || dark.floor(grid, key) > dark.needed {
+                        continue;
+                    }
+                    // Part of the block is within reach and not all of it dense enough: each
+                    // voxel within reach must be.
+                    let block = grid.block(key);
+                    let tile = grid.tile_level(origin).is_some();
+                    for slot in 0..LEAF_VOXELS {
+                        let v = origin + super::grid::slot_offset(slot);
+                        if gap2(v.as_vec3(), v.as_vec3()) > r2 {
+                            continue;
+                        }
+                        let dense = match block {
+                            Block::Leaf(leaf) => {
+                                leaf.is_active(slot) && leaf.values.get(slot) > dark.needed
+                            }
+                            Block::Constant(value) => tile && value > dark.needed,
+                        };
+                        if !dense {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        true
     }
 
     /// Marches the far part of every ray through `far`'s coarser levels. A coarse level's
@@ -454,6 +588,54 @@ mod tests {
             .chord_mean(origin, Vec3::X, box_, 1.0, |_| 1.0, Some(|_, _| 1.0))
             .unwrap();
         assert!(walked > 0.0 && walked < 0.2 * beyond, "{walked} {beyond}");
+    }
+
+    #[test]
+    fn the_dark_test_tells_only_where_every_ray_is_cut_off() {
+        // Inside the slab at one optical depth per voxel a ray is cut off within ten voxels: far
+        // from the faces every ray from a point, or from a box of points, is; seven voxels from
+        // the face at x = 128 the ray toward it is not (e^(−7.5) > 10⁻⁴), and the test says so.
+        let field = DensityField::new(slab());
+        let d = OpticalDepth::new(&field, 1.0, true).with_dark_test();
+        let inside = Vec3::new(190.0, 64.0, 64.0);
+        assert!(d.all_cut_off(inside, inside));
+        assert!(d.all_cut_off(inside - 6.0, inside + 6.0));
+        for i in 0..300 {
+            let a = i as f32 * 0.41;
+            let dir = Vec3::new(a.cos(), (a * 1.9).sin(), a.sin()).normalize();
+            for o in [inside, inside - 6.0, inside + Vec3::new(6.0, -6.0, 6.0)] {
+                assert!(
+                    d.transmittance(o, dir) <= MIN_TRANSMITTANCE,
+                    "ray {i} from {o}"
+                );
+            }
+        }
+        // The point nearest the face that the test calls dark: its rays toward the face, the
+        // brightest there are, are cut off too.
+        let first = (129..190)
+            .map(|x| Vec3::new(x as f32, 64.0, 64.0))
+            .find(|&p| d.all_cut_off(p, p))
+            .unwrap();
+        for dir in [-Vec3::X, Vec3::new(-1.0, 0.3, 0.2).normalize()] {
+            assert!(d.transmittance(first, dir) <= MIN_TRANSMITTANCE, "{first}");
+        }
+        let near_face = Vec3::new(135.0, 64.0, 64.0);
+        assert!(d.transmittance(near_face, -Vec3::X) > MIN_TRANSMITTANCE);
+        assert!(!d.all_cut_off(near_face, near_face));
+        assert!(!d.all_cut_off(inside - 6.0, inside + Vec3::new(60.0, 6.0, 6.0)));
+        // Where a ray is cut off only past the test's reach (a thinner medium), or marches coarser
+        // levels, nothing is told.
+        let thin = OpticalDepth::new(&field, 0.05, true).with_dark_test();
+        assert!(!thin.all_cut_off(inside, inside));
+        let mip = DensityMip::build(&field.grid, 2);
+        let far = FarField {
+            mip: &mip,
+            near: 12,
+        };
+        let coarse = OpticalDepth::new(&field, 1.0, true)
+            .with_far_field(far)
+            .with_dark_test();
+        assert!(!coarse.all_cut_off(inside, inside));
     }
 
     #[test]
