@@ -24,9 +24,11 @@ pub const STEP_VOXELS: f32 = 1.0;
 pub const MIN_TRANSMITTANCE: f32 = 1e-4;
 
 /// How many times the depth that cuts a ray off a test asks of the density at its maximum
-/// ([`OpticalDepth::all_cut_off`]): a cloud's interior dips below its maximum, and a test that
-/// allows for it reaches further but finds more of the dark interior.
-const DARK_MARGIN: f32 = 1.5;
+/// ([`OpticalDepth::all_cut_off`]): one that allows for a lower density reaches further. On
+/// cloud_large, whose interior is near its maximum, margins 1.1 / 1.25 / 1.5 / 2 found 4 591 /
+/// 4 369 / 3 946 / 0 of its 16 806 nodes dark at σt 1 (2 the reach past [`MAX_DARK_REACH`]),
+/// 5 865 / 5 657 / 5 440 / 4 665 at σt 1.6.
+const DARK_MARGIN: f32 = 1.1;
 /// The farthest, in voxels, the test reads around a ray's origin: a thinner medium needs rays too
 /// long for the test to pay (and marches coarser levels past its first steps, which it does not
 /// bound).
