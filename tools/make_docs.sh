@@ -37,10 +37,15 @@ for bounces in single:1 multiple:100000; do
 done
 
 # One transfer, two environments: relighting needs no new bake.
-$VS render "$TMP/multiple.vtc" -o "$OUT/cloud_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
-$VS render "$TMP/multiple.vtc" -o "$OUT/cloud_split.png" --env fixtures/env/split.exr --res $RES --quiet
+for env in studio split; do
+    $VS render "$TMP/multiple.vtc" -o "$OUT/cloud_$env.png" --env fixtures/env/$env.exr --res $RES --quiet
+    $VS render "$CLOUD" -o "$OUT/cloud_${env}_pathtrace.png" --env fixtures/env/$env.exr --res $RES \
+        --albedo 0.99 --method pathtrace --spp "$SPP" --quiet
+done
 
 $VS render fixtures/torus.vdb -o "$OUT/torus_studio.png" --env fixtures/env/studio.exr --res $RES --quiet
+$VS render fixtures/torus.vdb -o "$OUT/torus_studio_pathtrace.png" --env fixtures/env/studio.exr --res $RES \
+    --method pathtrace --spp "$SPP" --quiet
 
 # One sun on a black sky, single scattering at the default σt: the shadow volume beside the path
 # tracer (docs/accuracy.md, "Suns").
@@ -55,4 +60,4 @@ $VS render "$TMP/seq/cloud.####.vtc" --frames 1001-1012:3 --orbit 360 -o "$OUT/o
     --res 320x180 --force --quiet
 $VS render "$TMP/seq/cloud.####.vtc" --frames 1001-1012:3 --orbit 360 -o "$OUT/orbit_pathtrace.####.png" \
     --res 320x180 --force --quiet --method pathtrace --spp "$SPP"
-echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png and the path tracer's three"
+echo "wrote $OUT/cloud_sky.png, cloud_{single,multiple,studio,split}.png, torus_studio.png and the path tracer's images of each"

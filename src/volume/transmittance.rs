@@ -276,7 +276,7 @@ impl<'a> OpticalDepth<'a> {
     /// A plain mean lies between 0 and the transmittance beyond the chord, so where that ray was
     /// cut off ([`MIN_TRANSMITTANCE`]) the chord is not walked and the mean is that transmittance,
     /// as a ray cut off reads: deep in a thick medium most chords are dark, and their walks were a
-    /// quarter of a bake's T_ri at 1.6 optical depths per voxel (docs/benchmarks.md).
+    /// quarter of the footprint means' time at 1.6 optical depths per voxel (docs/benchmarks.md).
     pub fn chord_mean<G: FnMut(Vec3, f32) -> f32>(
         &self,
         origin: Vec3,
