@@ -936,6 +936,17 @@ struct State<R> {
     reflected: Vec<R>,
 }
 
+impl<R: Lanes> State<R> {
+    /// The state of a transport over `links` with node rows `nodes`, no light waiting.
+    fn new(nodes: Vec<R>, links: &Links) -> State<R> {
+        State {
+            nodes,
+            emitting: 0,
+            reflected: vec![R::ZERO; links.reflecting_cells * (links.sweeps.len() / 2)],
+        }
+    }
+}
+
 /// A node's rows in [`State::nodes`].
 const NODE_ROWS: usize = 3;
 /// The fluence's place among them.
@@ -1068,12 +1079,7 @@ fn transport_chunk<R: Lanes>(
             (0, 1, 1)
         }
     };
-    let d = links.sweeps.len();
-    let mut state = State {
-        nodes,
-        emitting: 0,
-        reflected: vec![R::ZERO; links.reflecting_cells * (d / 2)],
-    };
+    let mut state = State::new(nodes, links);
     let mut stats = LatticeStats {
         energy_single: first.energy_single,
         ..Default::default()
@@ -1306,12 +1312,7 @@ const KRYLOV_TOLERANCE: f64 = 1e-4;
 /// generations swept, the reading's included.
 fn solve_krylov(links: &Links, albedo: f32, emission: &[f32]) -> (Vec<f32>, usize) {
     let n = links.sweeps[0].links.len();
-    let d = links.sweeps.len();
-    let mut state = State {
-        nodes: vec![0f32; n * NODE_ROWS],
-        emitting: 0,
-        reflected: vec![0f32; links.reflecting_cells * (d / 2)],
-    };
+    let mut state = State::new(vec![0f32; n * NODE_ROWS], links);
     let mut b = vec![0f32; n + state.reflected.len()];
     b[..n].copy_from_slice(emission);
     let (mut total, solved) = crate::math::krylov::solve_fixed_point(

@@ -194,10 +194,12 @@ pub fn bake_single(
             // Deep in a thick medium every ray from the node, or from anywhere in its footprint,
             // is cut off within a few voxels: it reads as a cut-off ray, at most the cutoff. A
             // footprint mean drawn by the visibility is not bounded by its rays, and is traced.
-            let k = layout.k as f32;
+            let k = layout.k;
+            // The footprint: the box K voxels around the node, which its means' chords cross.
+            let footprint = (x - k as f32, x + k as f32);
             let dark = match settings.origins {
-                Origins::Node => depth.all_cut_off(x, x),
-                Origins::Footprint => visibility.is_none() && depth.all_cut_off(x - k, x + k),
+                Origins::Node => depth.all_cut_off((x, x)),
+                Origins::Footprint => visibility.is_none() && depth.all_cut_off(footprint),
             };
             if dark {
                 row.fill(MIN_TRANSMITTANCE);
@@ -221,8 +223,6 @@ pub fn bake_single(
                     }
                 }
                 Some(starts) => {
-                    let k = layout.k;
-                    let footprint = (x - k as f32, x + k as f32);
                     for ((t, d), p) in row.iter_mut().zip(&set.dirs).zip(&starts.points) {
                         // g read at q itself, as ρ and w are. A start is drawn uniformly
                         // within its quadrature point's cell with that point's g; reading g

@@ -166,7 +166,7 @@ impl<'a> OpticalDepth<'a> {
     /// ([`MIN_TRANSMITTANCE`]) within its first n samples: where every voxel within the test's
     /// radius of the box is active and denser than σt·n·Δ needs, those samples alone cut it
     /// off. `false` where it cannot tell.
-    pub fn all_cut_off(&self, lo: Vec3, hi: Vec3) -> bool {
+    pub fn all_cut_off(&self, (lo, hi): (Vec3, Vec3)) -> bool {
         let Some(dark) = &self.dark else {
             return false;
         };
@@ -601,8 +601,8 @@ mod tests {
         let field = DensityField::new(slab());
         let d = OpticalDepth::new(&field, 1.0, true).with_dark_test();
         let inside = Vec3::new(190.0, 64.0, 64.0);
-        assert!(d.all_cut_off(inside, inside));
-        assert!(d.all_cut_off(inside - 6.0, inside + 6.0));
+        assert!(d.all_cut_off((inside, inside)));
+        assert!(d.all_cut_off((inside - 6.0, inside + 6.0)));
         for i in 0..300 {
             let a = i as f32 * 0.41;
             let dir = Vec3::new(a.cos(), (a * 1.9).sin(), a.sin()).normalize();
@@ -617,19 +617,19 @@ mod tests {
         // brightest there are, are cut off too.
         let first = (129..190)
             .map(|x| Vec3::new(x as f32, 64.0, 64.0))
-            .find(|&p| d.all_cut_off(p, p))
+            .find(|&p| d.all_cut_off((p, p)))
             .unwrap();
         for dir in [-Vec3::X, Vec3::new(-1.0, 0.3, 0.2).normalize()] {
             assert!(d.transmittance(first, dir) <= MIN_TRANSMITTANCE, "{first}");
         }
         let near_face = Vec3::new(135.0, 64.0, 64.0);
         assert!(d.transmittance(near_face, -Vec3::X) > MIN_TRANSMITTANCE);
-        assert!(!d.all_cut_off(near_face, near_face));
-        assert!(!d.all_cut_off(inside - 6.0, inside + Vec3::new(60.0, 6.0, 6.0)));
+        assert!(!d.all_cut_off((near_face, near_face)));
+        assert!(!d.all_cut_off((inside - 6.0, inside + Vec3::new(60.0, 6.0, 6.0))));
         // Where a ray is cut off only past the test's reach (a thinner medium), or marches coarser
         // levels, nothing is told.
         let thin = OpticalDepth::new(&field, 0.05, true).with_dark_test();
-        assert!(!thin.all_cut_off(inside, inside));
+        assert!(!thin.all_cut_off((inside, inside)));
         let mip = DensityMip::build(&field.grid, 2);
         let far = FarField {
             mip: &mip,
@@ -638,7 +638,7 @@ mod tests {
         let coarse = OpticalDepth::new(&field, 1.0, true)
             .with_far_field(far)
             .with_dark_test();
-        assert!(!coarse.all_cut_off(inside, inside));
+        assert!(!coarse.all_cut_off((inside, inside)));
     }
 
     #[test]
