@@ -17,7 +17,7 @@ use crate::pathtrace::{Medium3d, PathStats, PathTracer};
 use crate::render::sunlight::{self, SunLattice, SunLight};
 use crate::render::{self, Background, Camera, CameraSpec, MarchSettings, MarchStats, Rows};
 use crate::transfer::cache::{self, Cache, Header, Origin, Source};
-use crate::transfer::lattice::{DensityMeans, LatticeKind};
+use crate::transfer::lattice::DensityMeans;
 use crate::transfer::memory::RADIANCE_BYTES_PER_TRANSFER_VOXEL;
 use crate::transfer::memory::{BakePlan, MAX_LAID_OUT_VOXELS};
 use crate::transfer::packing::Precision;
@@ -312,7 +312,7 @@ impl Scene {
             return 0;
         }
         let shadow = crate::volume::shadow::ShadowVolume::estimate_bytes(&self.field.grid);
-        let lattice = self.planned_sun_layout(bake).map_or(0, |(layout, _)| {
+        let lattice = self.planned_sun_layout(bake).map_or(0, |layout| {
             layout.memory_bytes() as u64 + layout.len() as u64 * (4 * new_suns + SUN_RECORD_BYTES)
         });
         new_suns * shadow + lattice
@@ -325,25 +325,23 @@ impl Scene {
         if self.new_suns(lighting) == 0 {
             return 0;
         }
-        self.planned_sun_layout(bake).map_or(0, |(layout, kind)| {
+        self.planned_sun_layout(bake).map_or(0, |layout| {
             let reflecting =
                 DensityMeans::new(&self.field.grid).reflecting_share(self.medium.sigma_t, layout.k);
-            crate::transfer::memory::sun_solve_bytes(layout.len(), kind.directions(), reflecting)
+            let directions = sunlight::SUN_LATTICE.directions();
+            crate::transfer::memory::sun_solve_bytes(layout.len(), directions, reflecting)
         })
     }
 
-    /// The suns' lattice and its kind: the baked transfer's, or, before a bake, the one the bake
-    /// `bake` will make, from the transfer layout it will lay out; `None` without a lattice, or
+    /// The suns' lattice's nodes: for the baked transfer's layout, or, before a bake, for the
+    /// transfer layout the bake `bake` will lay out; `None` without a lattice, or
     /// before a bake of more transfer voxels than a plan lays out ([`MAX_LAID_OUT_VOXELS`]),
     /// whose suns are solved on its own cells and counted with it.
-    fn planned_sun_layout(
-        &self,
-        bake: Option<&BakeConfig>,
-    ) -> Option<(Arc<TransferLayout>, LatticeKind)> {
+    fn planned_sun_layout(&self, bake: Option<&BakeConfig>) -> Option<Arc<TransferLayout>> {
         if let Some(t) = &self.transfer {
             return t
                 .lattice
-                .map(|kind| (self.sun_layout(kind, || Cow::Borrowed(&t.layout)), kind));
+                .map(|_| self.sun_layout(|| Cow::Borrowed(&t.layout)));
         }
         let settings = &bake?.settings;
         let grid = &self.field.grid;
@@ -352,9 +350,8 @@ impl Scene {
         {
             return None;
         }
-        let kind = settings.lattice;
         let layout = || Cow::Owned(TransferLayout::build(grid, settings.scale));
-        Some((self.sun_layout(kind, layout), kind))
+        Some(self.sun_layout(layout))
     }
 
     /// How many of `lighting.suns` have no light kept from an earlier render.
@@ -390,10 +387,10 @@ impl Scene {
             .suns
             .iter()
             .any(|s| kept_light(&kept, s.direction, medium).is_none());
-        let lattice = transfer.lattice.filter(|_| new_suns).map(|kind| {
+        let lattice = transfer.lattice.filter(|_| new_suns).map(|_| {
             let clock = Instant::now();
-            let layout = self.sun_layout(kind, || Cow::Borrowed(&transfer.layout));
-            let lattice = SunLattice::build(&self.field, layout, kind, medium);
+            let layout = self.sun_layout(|| Cow::Borrowed(&transfer.layout));
+            let lattice = SunLattice::build(&self.field, layout, medium);
             report.lattice_seconds += clock.elapsed().as_secs_f64();
             lattice
         });
@@ -429,7 +426,6 @@ impl Scene {
     /// (a plan's transfer layout is then laid out once, not once per estimate).
     fn sun_layout<'t>(
         &self,
-        kind: LatticeKind,
         transfer: impl FnOnce() -> Cow<'t, TransferLayout>,
     ) -> Arc<TransferLayout> {
         let mut held = self.sun_layout.lock().unwrap_or_else(|e| e.into_inner());
@@ -437,7 +433,6 @@ impl Scene {
             Arc::new(sunlight::sun_layout(
                 &self.field.grid,
                 &transfer(),
-                kind,
                 self.medium.sigma_t,
             ))
         })

@@ -205,8 +205,8 @@ impl Chunk {
     }
 }
 const NO_LINK: u32 = u32::MAX;
-/// Longest segment marched, in sub-steps: a corner link at K = 64 is 64·√3 / 0.5 ≈ 222 steps.
-const MAX_SEGMENT_STEPS: usize = 256;
+/// Longest segment marched, in sub-steps: a (2, 2, 1) link at K = 64 is 64·3 / 0.5 = 384 steps.
+const MAX_SEGMENT_STEPS: usize = 384;
 /// A line through a cell reflects part of the light entering it once its optical depth per cell
 /// edge, t = σ̄·h, exceeds this (module doc, "Thick cells"); below, nothing is reflected and the
 /// lattice is the plain transport.
@@ -215,13 +215,9 @@ pub const REFLECT_ABOVE_DEPTH: f64 = 1.0;
 /// α = 1 in an extremely thick cell 1/(1 − α·s) would lose all precision.
 const MAX_SELF_GAIN: f64 = 0.999_999;
 
-/// Voronoi shares of the sphere of the lattice directions, by class (face, edge, corner), measured
-/// by a 4000 × 8000 (cos θ, φ) quadrature; `lattice_weights_are_voronoi_shares` re-derives them.
-const WEIGHTS_6: [f64; 3] = [1.0 / 6.0, 0.0, 0.0];
-const WEIGHTS_18: [f64; 3] = [0.046_782_333, 0.059_942_167, 0.0];
-const WEIGHTS_26: [f64; 3] = [0.045_776_417, 0.036_981_958, 0.035_194_750];
-
-/// Which neighbour directions the lattice links: faces, faces + edges, or all 26.
+/// Which directions the lattice links: the 6 faces, faces and the 12 edges, or all 26 neighbours
+/// (`--lattice`); or the suns' set, the faces and the 24 offsets like (2, 2, 1)
+/// ([`crate::render::sunlight::SUN_LATTICE`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum LatticeKind {
     #[value(name = "6")]
@@ -230,16 +226,48 @@ pub enum LatticeKind {
     FacesEdges,
     #[value(name = "26")]
     All,
+    #[value(skip)]
+    FacesSkew,
 }
 
 impl LatticeKind {
     pub fn directions(self) -> usize {
+        self.families()
+            .iter()
+            .map(|(base, _)| family_size(*base))
+            .sum()
+    }
+
+    /// The offset families linked, each as its sorted magnitudes, and the Voronoi share of the
+    /// sphere of each of its offsets, measured by a 4000 × 8000 (cos θ, φ) quadrature
+    /// (`lattice_weights_are_voronoi_shares` re-derives them).
+    fn families(self) -> &'static [([i32; 3], f64)] {
         match self {
-            LatticeKind::Faces => 6,
-            LatticeKind::FacesEdges => 18,
-            LatticeKind::All => 26,
+            LatticeKind::Faces => &[([0, 0, 1], 1.0 / 6.0)],
+            LatticeKind::FacesEdges => &[([0, 0, 1], 0.046_782_333), ([0, 1, 1], 0.059_942_167)],
+            LatticeKind::All => &[
+                ([0, 0, 1], 0.045_776_417),
+                ([0, 1, 1], 0.036_981_958),
+                ([1, 1, 1], 0.035_194_750),
+            ],
+            LatticeKind::FacesSkew => &[([0, 0, 1], 0.045_848_750), ([1, 2, 2], 0.030_204_479)],
         }
     }
+}
+
+/// The sorted magnitudes of offset `d`: the family it belongs to.
+fn family(d: IVec3) -> [i32; 3] {
+    let mut a = d.abs().to_array();
+    a.sort_unstable();
+    a
+}
+
+/// How many offsets a family has: its signed permutations.
+fn family_size(base: [i32; 3]) -> usize {
+    (-2..=2)
+        .flat_map(|x| (-2..=2).flat_map(move |y| (-2..=2).map(move |z| IVec3::new(x, y, z))))
+        .filter(|&d| family(d) == base)
+        .count()
 }
 
 /// The lattice's discrete directions and their weights.
@@ -252,30 +280,29 @@ pub struct Directions {
 }
 
 impl Directions {
-    /// The 6, 18 or 26 neighbour directions.
+    /// The directions of `kind`, in the order of their offsets (x, then y, then z).
     pub fn new(kind: LatticeKind) -> Directions {
-        let (classes, table) = match kind {
-            LatticeKind::Faces => (1, WEIGHTS_6),
-            LatticeKind::FacesEdges => (2, WEIGHTS_18),
-            LatticeKind::All => (3, WEIGHTS_26),
+        let weight = |d: IVec3| {
+            let base = family(d);
+            kind.families()
+                .iter()
+                .find(|(b, _)| *b == base)
+                .map(|(_, w)| *w)
         };
         let mut offsets = Vec::new();
-        for x in -1..=1 {
-            for y in -1..=1 {
-                for z in -1..=1 {
+        let mut raw = Vec::new();
+        for x in -2..=2 {
+            for y in -2..=2 {
+                for z in -2..=2 {
                     let d = IVec3::new(x, y, z);
-                    let class = d.abs().element_sum();
-                    if class >= 1 && class <= classes {
+                    if let Some(w) = weight(d) {
                         offsets.push(d);
+                        raw.push(w);
                     }
                 }
             }
         }
         // Renormalise the rounded constants so the weights sum to 1 exactly in f64.
-        let raw: Vec<f64> = offsets
-            .iter()
-            .map(|d| table[d.abs().element_sum() as usize - 1])
-            .collect();
         let total: f64 = raw.iter().sum();
         let weights = raw.iter().map(|w| (w / total) as f32).collect();
         let opposite = offsets
@@ -503,8 +530,8 @@ fn pairs(dirs: &Directions) -> Vec<usize> {
     dirs.spread((0..).map(|count| [count, count]))
 }
 
-/// The most lattice directions there are (26).
-const MAX_DIRECTIONS: usize = 26;
+/// The most lattice directions there are (30).
+const MAX_DIRECTIONS: usize = 30;
 
 /// The lines of the layout along `off` and along −`off` ([`Sweep`]), their links holding only the
 /// cells' slots, and each cell's place among them. The two directions have the same lines, each
@@ -513,7 +540,9 @@ fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
     let voxels = layout.voxels();
     // A cell's line is named by the point where it crosses the plane through the origin normal to
     // an axis the direction moves along, and the cell's place on it by the steps t from there.
-    let axis = (0..3).find(|&a| off[a] != 0).unwrap_or(0);
+    // An axis the direction moves one step along (every lattice offset has one), so that t counts
+    // the cells of the line.
+    let axis = (0..3).find(|&a| off[a].abs() == 1).unwrap_or(0);
     let line = |v: IVec3| {
         let t = v[axis] * off[axis];
         (v - off * t, t)

@@ -16,6 +16,7 @@ fn lattice_weights_are_voronoi_shares() {
         LatticeKind::Faces,
         LatticeKind::FacesEdges,
         LatticeKind::All,
+        LatticeKind::FacesSkew,
     ] {
         let dirs = Directions::new(kind);
         let count = kind.directions();
@@ -55,6 +56,8 @@ fn half_range_moment_is_near_a_quarter() {
             .sum::<f32>()
     };
     assert!((moment(LatticeKind::All) - 0.2317).abs() < 1e-3);
+    // The suns' set: no direction but the faces in an axis plane.
+    assert!((moment(LatticeKind::FacesSkew) - 0.2472).abs() < 1e-3);
     assert!((moment(LatticeKind::FacesEdges) - 0.2163).abs() < 1e-3);
     assert!((moment(LatticeKind::Faces) - 1.0 / 6.0).abs() < 1e-6);
 }
