@@ -4,9 +4,10 @@
 //! # The discrete equations
 //!
 //! Nodes are the transfer voxels x (spacing h = K·voxel size), each owning a cell of volume V = h³.
-//! Directions are the D lattice offsets d_j (6 faces, 12 edges, 8 corners), link length
-//! ℓ_j = h·|d_j|, with weights w_j = the share of the sphere closest to d_j (Σ w_j = 1, so the
-//! isotropic redistribution below conserves energy exactly on the discrete set).
+//! Directions are the D lattice offsets d_j (6 faces, 12 edges, 8 corners; the suns' set: 6 faces
+//! and 24 offsets like (2, 2, 1)), link length ℓ_j = h·|d_j|, with weights w_j = the share of the
+//! sphere closest to d_j (Σ w_j = 1, so the isotropic redistribution below conserves energy
+//! exactly on the discrete set).
 //!
 //! Every quantity is an SH vector (the transfer is linear in the environment, so one scalar
 //! transport serves all `bands²` right-hand sides) and every power is per cell volume V.
@@ -232,10 +233,7 @@ pub enum LatticeKind {
 
 impl LatticeKind {
     pub fn directions(self) -> usize {
-        self.families()
-            .iter()
-            .map(|(base, _)| family_size(*base))
-            .sum()
+        Directions::new(self).len()
     }
 
     /// The offset families linked, each as its sorted magnitudes, and the Voronoi share of the
@@ -260,14 +258,6 @@ fn family(d: IVec3) -> [i32; 3] {
     let mut a = d.abs().to_array();
     a.sort_unstable();
     a
-}
-
-/// How many offsets a family has: its signed permutations.
-fn family_size(base: [i32; 3]) -> usize {
-    (-2..=2)
-        .flat_map(|x| (-2..=2).flat_map(move |y| (-2..=2).map(move |z| IVec3::new(x, y, z))))
-        .filter(|&d| family(d) == base)
-        .count()
 }
 
 /// The lattice's discrete directions and their weights.
