@@ -5,7 +5,7 @@
 # fog sphere and the cloud fixtures (the default camera), and a wide slab of 120 × 30 × 120 voxels
 # of density 1 seen from straight above (its face on an axis plane, the lattice's hardest case),
 # each at σt 1 and 0.2. The slab is written with Debian's OpenVDB (installed when missing).
-# Extra arguments go to every transfer render (e.g. --lattice 18).
+# Extra arguments go to every transfer render.
 # Knobs: SPP (path tracer, 1024 × 2 seeds), RES (128x72), OUT (target/energy), VS (a built binary).
 # About 25 minutes on 2 cores, most of it the path tracer, whose images are kept and reused.
 set -euo pipefail
