@@ -191,9 +191,9 @@ impl<'a> OpticalDepth<'a> {
                         continue;
                     }
                     // Part of the block is within reach and not all of it dense enough: each
-                    // voxel within reach must be.
+                    // voxel within reach must be. A constant block (a tile or the background)
+                    // whose floor failed has no voxel that is.
                     let block = grid.block(key);
-                    let tile = grid.tile_level(origin).is_some();
                     for slot in 0..LEAF_VOXELS {
                         let v = origin + super::grid::slot_offset(slot);
                         if gap2(v.as_vec3(), v.as_vec3()) > r2 {
@@ -203,7 +203,7 @@ impl<'a> OpticalDepth<'a> {
                             Block::Leaf(leaf) => {
                                 leaf.is_active(slot) && leaf.values.get(slot) > dark.needed
                             }
-                            Block::Constant(value) => tile && value > dark.needed,
+                            Block::Constant(_) => false,
                         };
                         if !dense {
                             return false;
