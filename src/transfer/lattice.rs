@@ -777,16 +777,18 @@ struct Segment {
 const SEGMENT_STEP_VOXELS: f32 = 0.5;
 
 /// e^(−t) and (1 − e^(−t))/t, the share of light emitted uniformly along a sub-step of optical
-/// depth t that leaves it, from one `exp_m1`.
+/// depth t that leaves it, from one `exp` (about a third of the time of `exp_m1`, which took
+/// half of a segment march's time).
 fn through_and_leaving(t: f32) -> (f32, f32) {
-    // Below this, the series 1 − t/2 is exact in f32 while the quotient loses digits.
-    const SERIES_BELOW: f32 = 1e-4;
-    let m = (-t).exp_m1();
+    // Below this the quotient would lose digits to 1 − e^(−t), and the series to t⁴ is within
+    // t⁵/720 < 2·10⁻⁸ of it; above, 1 − e^(−t) is within 4·10⁻⁷ relative.
+    const SERIES_BELOW: f32 = 0.1;
+    let through = (-t).exp();
     let leaving = match t < SERIES_BELOW {
-        true => 1.0 - 0.5 * t,
-        false => -m / t,
+        true => 1.0 - t * (0.5 - t * (1.0 / 6.0 - t * (1.0 / 24.0 - t / 120.0))),
+        false => (1.0 - through) / t,
     };
-    (1.0 + m, leaving)
+    (through, leaving)
 }
 
 /// A segment march's sub-steps: their densities, and each one's e^(−t) and (1 − e^(−t))/t
