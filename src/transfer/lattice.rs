@@ -537,17 +537,17 @@ fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
         let t = v[axis] * off[axis];
         (v - off * t, t)
     };
-    // The sort keys computed once per cell, not at every comparison.
+    // Each cell's place as one integer, sorted as such: no key computed at a comparison, and
+    // half the bytes moved of a key beside its slot.
     let mut order: Vec<Placed> = voxels
         .iter()
         .enumerate()
         .map(|(s, &v)| {
             let (key, t) = line(v);
-            (line_order(key, t), s as u32)
+            placed(key, axis, t, s as u32)
         })
         .collect();
-    // No two cells share a line and a t, so the slots need not take part.
-    order.sort_unstable_by_key(|&(key, _)| key);
+    order.sort_unstable();
     let there = sweep_of(&order);
     // The same lines, each run reversed: −off's order.
     let mut start = 0;
@@ -563,20 +563,27 @@ fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
     [there, sweep_of(&order)]
 }
 
-/// Whether two cells of [`lines`]' order lie on one line (their keys but t agree).
+/// Whether two cells of [`lines`]' order lie on one line (their keys agree).
 fn same_line(a: &Placed, b: &Placed) -> bool {
-    a.0 >> 32 == b.0 >> 32
+    a >> 64 == b >> 64
 }
 
-/// A cell placed on its line: [`line_order`] and the cell's slot.
-type Placed = (u128, u32);
+/// A cell placed on its line: the line's key (its two coordinates across `axis`; the one along
+/// it is 0), then t, then the cell's slot, each in 32 bits of its own (an i32 with its sign bit
+/// flipped, so the unsigned order is the signed one). The order is that of (line, t): no two
+/// cells share a line and a t.
+type Placed = u128;
 
-/// One number whose order is that of (line, t), line by its key's x, y and z: each i32 with its
-/// sign bit flipped (so the unsigned order is the signed one) in 32 bits of its own, t lowest. A
-/// sort compares one integer instead of four.
-fn line_order(key: IVec3, t: i32) -> u128 {
+/// Cell `slot` placed at `t` on the line of `key`, which is 0 along `axis`.
+fn placed(key: IVec3, axis: usize, t: i32, slot: u32) -> Placed {
     let bits = |v: i32| (v as u32 ^ 1 << 31) as u128;
-    bits(key.x) << 96 | bits(key.y) << 64 | bits(key.z) << 32 | bits(t)
+    let [b, c] = match axis {
+        0 => [1, 2],
+        1 => [0, 2],
+        _ => [0, 1],
+    }
+    .map(|a| bits(key[a]));
+    b << 96 | c << 64 | bits(t) << 32 | slot as u128
 }
 
 /// A sweep over cells in line order (`order`: each line's key, t and a cell's slot, lines
@@ -586,7 +593,8 @@ fn sweep_of(order: &[Placed]) -> (Sweep, Vec<u32>) {
     let mut place = vec![0u32; n];
     let mut links = Vec::with_capacity(n);
     let mut tasks = vec![0];
-    for (i, &(_, s)) in order.iter().enumerate() {
+    for (i, &p) in order.iter().enumerate() {
+        let s = p as u32;
         place[s as usize] = i as u32;
         let start = i == 0 || !same_line(&order[i - 1], &order[i]);
         if start && i - tasks[tasks.len() - 1] >= TASK_LINKS {
