@@ -240,8 +240,10 @@ pub fn bake(
 }
 
 /// Optical depth per transfer voxel (σt × K × voxel size × mean density) above which the 1/K
-/// resolution visibly costs accuracy: docs/accuracy.md measures single scattering 9–11 % and
-/// multiple scattering 7–9 % off the path tracer at 0.96 (4–5 % at 0.48).
+/// resolution visibly costs accuracy under soft light: docs/accuracy.md measures the fixtures
+/// under studio.exr 4–5 % (single) and 7–9 % (multiple) off the path tracer at 0.96, 7 % and
+/// 12–14 % at 1.92, and 10–13 % and 23–25 % at the default σt; a sun's light, resolved per
+/// density voxel, leaves the default scene (the built-in sky) 7 % off.
 pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 
 /// The warning for a transfer whose voxels are too thick to resolve where light enters (see
@@ -259,8 +261,10 @@ pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> O
     (depth > MAX_RESOLVED_CELL_DEPTH).then(|| {
         format!(
             "{depth:.2} optical depths per transfer voxel (σt {} × K {scale} × voxel {voxel:.3} × mean density {mean:.3}): \
-             light enters within a fraction of a transfer voxel, so expect errors well above 10 % \
-             (docs/accuracy.md); a smaller --scale helps, and --sigma-t {} keeps it below {MAX_RESOLVED_CELL_DEPTH}",
+             an environment map's soft light enters within a fraction of a transfer voxel, so without a \
+             sun expect errors well above 10 % (a sun's light is resolved per density voxel; \
+             docs/accuracy.md); a smaller --scale helps, and --sigma-t {} keeps it below \
+             {MAX_RESOLVED_CELL_DEPTH} optical depth per transfer voxel",
             medium.sigma_t,
             clearing_sigma_t(k, voxel, mean),
         )
