@@ -537,8 +537,8 @@ fn lines(layout: &TransferLayout, off: IVec3) -> [(Sweep, Vec<u32>); 2] {
         let t = v[axis] * off[axis];
         (v - off * t, t)
     };
-    // Each cell's place as one integer, sorted as such: no key computed at a comparison, and
-    // half the bytes moved of a key beside its slot.
+    // Each cell's place as one integer, sorted as such: 16 bytes a cell, no key computed at a
+    // comparison.
     let mut order: Vec<Placed> = voxels
         .iter()
         .enumerate()
