@@ -190,7 +190,7 @@ section_render() {
     local rl; rl=$(awk -v s="$(j $n relight_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')
     printf "%-34s %10s %10s %10s %9s  %-22s %s\n" "studio.exr 128x64, $RES" "$rl" \
         "$(awk -v s="$(j $n env_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')" \
-        "$(j $n march_seconds %.2f)" "$WALL" "$(verdict "$rl" "<=" 50)" "$LOAD"
+        "$(j $n march_seconds %.2f)" "$(logged_wall $n)" "$(verdict "$rl" "<=" 50)" "$LOAD"
     run_timed render_cloud_large_env2048 "$VS" render "$(cache cloud_large_s1.6)" -o "$BENCH_OUT/cloud_large_env2048.exr" \
         --res "$RES" --env "$BENCH_OUT/env2048.exr" --quiet --stats
     n=render_cloud_large_env2048

@@ -47,6 +47,11 @@ ensure_inputs() { tools/make_bench_inputs.sh "$BENCH_IN" >"$LOG/inputs.log" 2>&1
 
 load() { cut -d' ' -f1-3 /proc/loadavg; }
 
+# logged_wall NAME : the wall time (s) of run_timed's run NAME, from its /usr/bin/time log.
+logged_wall() {
+    awk -F': ' '/Elapsed \(wall clock\)/{n=split($2,a,":"); s=0; for(i=1;i<=n;i++) s=s*60+a[i]; printf "%.2f", s}' "$LOG/$1.time"
+}
+
 # run_timed NAME CMD... : runs CMD under /usr/bin/time -v. Sets WALL (s), RSS_MB, CPU (% of one core the
 # run got: 2 cores fully = 200%), CPU_S (user+sys seconds), RC, LOAD (at start),
 # and NAME.json = the last JSON line of stdout (the --stats line), if any. Never aborts the bench.
@@ -57,7 +62,7 @@ run_timed() {
     /usr/bin/time -v -o "$LOG/$name.time" "$@" >"$LOG/$name.out" 2>"$LOG/$name.err"
     RC=$?
     set -e
-    WALL=$(awk -F': ' '/Elapsed \(wall clock\)/{n=split($2,a,":"); s=0; for(i=1;i<=n;i++) s=s*60+a[i]; printf "%.2f", s}' "$LOG/$name.time")
+    WALL=$(logged_wall "$name")
     RSS_MB=$(awk -F': ' '/Maximum resident set size/{printf "%.1f", $2/1024}' "$LOG/$name.time")
     CPU=$(awk -F': ' '/Percent of CPU/{print $2}' "$LOG/$name.time")
     CPU_S=$(awk -F': ' '/User time|System time/{s+=$2} END{printf "%.2f", s}' "$LOG/$name.time")
