@@ -129,7 +129,12 @@ impl Scene {
             };
             (loaded.grid, config.medium, None, Some(origin))
         };
-        let read_seconds = clock.elapsed().as_secs_f64();
+        // A cache relit as it was read counts that time as relight (`RelitMap::seconds`).
+        let relit: f64 = match transfer.as_ref().map(|t| &t.light) {
+            Some(TransferLight::Relit(maps)) => maps.iter().map(|m| m.seconds).sum(),
+            _ => 0.0,
+        };
+        let read_seconds = (clock.elapsed().as_secs_f64() - relit).max(0.0);
         let clock = Instant::now();
         let field = DensityField::without_bricks(grid);
         Ok(Scene {

@@ -161,6 +161,15 @@ compare_peer() {
         "$(j "render_$name" read_seconds %.3f)" "$how" "$l1" "$l2"
 }
 
+# relight_row LABEL NAME : one row of the relight table from run NAME's --stats and time log.
+relight_row() {
+    local n="$2" rl
+    rl=$(awk -v s="$(j "$n" relight_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')
+    printf "%-34s %10s %10s %10s %9s  %-22s %s\n" "$1" "$rl" \
+        "$(awk -v s="$(j "$n" env_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')" \
+        "$(j "$n" march_seconds %.2f)" "$(logged_wall "$n")" "$(verdict "$rl" "<=" 50)" "$LOAD"
+}
+
 section_render() {
     need_tools; build_vscatter; ensure_inputs; env2048
     command -v vdb_render >/dev/null || apt_install libopenvdb-tools
@@ -186,19 +195,12 @@ section_render() {
 
     echo "-- relight and environment projection, cloud_large cache (target: relight <= 50 ms)"
     printf "%-34s %10s %10s %10s %9s  %-22s %s\n" run relight_ms env_ms march_s wall_s verdict load
-    local n=render_cloud_large
-    local rl; rl=$(awk -v s="$(j $n relight_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')
-    printf "%-34s %10s %10s %10s %9s  %-22s %s\n" "studio.exr 128x64, $RES" "$rl" \
-        "$(awk -v s="$(j $n env_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')" \
-        "$(j $n march_seconds %.2f)" "$(logged_wall $n)" "$(verdict "$rl" "<=" 50)" "$LOAD"
+    relight_row "studio.exr 128x64, $RES" render_cloud_large
     run_timed render_cloud_large_env2048 "$VS" render "$(cache cloud_large_s1.6)" -o "$BENCH_OUT/cloud_large_env2048.exr" \
         --res "$RES" --env "$BENCH_OUT/env2048.exr" --quiet --stats
-    n=render_cloud_large_env2048
-    rl=$(awk -v s="$(j $n relight_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')
-    printf "%-34s %10s %10s %10s %9s  %-22s %s\n" "env2048.exr 2048x1024 (new), $RES" "$rl" \
-        "$(awk -v s="$(j $n env_seconds)" 'BEGIN{ if (s=="-") print "-"; else printf "%.2f", s*1000 }')" \
-        "$(j $n march_seconds %.2f)" "$WALL" "$(verdict "$rl" "<=" 50)" "$LOAD"
-    echo "   (env_ms = load + SH projection of the map; relight_ms = per-transfer-voxel T.E, map already projected)"
+    relight_row "env2048.exr 2048x1024 (new), $RES" render_cloud_large_env2048
+    echo "   (env_ms = load + SH projection of the map; relight_ms = T.E per transfer voxel, which a cache's"
+    echo "    coefficients get as they are read, never held)"
 
     echo "-- march time, sparse helix600 vs compact cloud_large, default camera, $RES, studio.exr (target: ratio <= 2)"
     printf "%-12s %9s %9s %5s %12s %12s %9s %9s  %s\n" cache march_s wall_s cpu% samples samples_skip rays rss_MB load

@@ -127,8 +127,8 @@ pub fn render_volume<R>(
     let t = Instant::now();
     let env_coeffs = lighting.sh_coefficients(transfer.bands);
     let project = t.elapsed();
+    let (radiance, relit) = relight(transfer, &env_coeffs)?;
     let t = Instant::now();
-    let radiance = relight(transfer, &env_coeffs)?;
     let multiple = sunlight::multiple_radiance(
         suns.iter()
             .zip(&lighting.suns)
@@ -157,7 +157,7 @@ pub fn render_volume<R>(
                 .map(|(layout, nodes)| (layout.as_ref(), nodes.as_slice())),
         ),
     );
-    let relight_time = t.elapsed();
+    let relight_time = relit + t.elapsed();
     let scene = Scene::new(field, transfer.medium, &source, background);
     let (out, stats, march_time) = march::stream(&scene, camera, settings, progress, consume);
     let report = RenderReport {

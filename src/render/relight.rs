@@ -4,12 +4,13 @@
 //! step that makes a new environment cost milliseconds: a dot product per voxel and channel.
 
 use std::borrow::Cow;
+use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::transfer::coefficients::MAX_COEFFS;
-use crate::transfer::{Coefficients, Transfer, TransferLight, PHASE};
+use crate::transfer::{Coefficients, RelitMap, Transfer, TransferLight, PHASE};
 
 /// Slots per rayon task: large enough that scheduling costs nothing next to the dot products.
 const SLOTS_PER_TASK: usize = 1024;
@@ -80,14 +81,23 @@ impl Radiance {
 ///
 /// Each slot's sums run in a fixed order (eight interleaved partial sums, then the tail) inside one
 /// task, so the output is bit-identical for any thread count, and for a transfer relit as read.
-pub fn relight<'a>(transfer: &'a Transfer, env_coeffs: &[[f32; 3]]) -> Result<Cow<'a, Radiance>> {
+///
+/// Also returns the time relighting took: now, or, for a transfer relit as read, then.
+pub fn relight<'a>(
+    transfer: &'a Transfer,
+    env_coeffs: &[[f32; 3]],
+) -> Result<(Cow<'a, Radiance>, Duration)> {
+    let clock = Instant::now();
     let (t_ri, f_ms) = match &transfer.light {
         TransferLight::Coefficients { t_ri, f_ms } => (t_ri, f_ms),
         TransferLight::Relit(maps) => {
             return maps
                 .iter()
-                .find(|(env, _)| env == env_coeffs)
-                .map(|(_, radiance)| Cow::Borrowed(radiance))
+                .find(|m| m.env == env_coeffs)
+                .map(|m| {
+                    let then = Duration::from_secs_f64(m.seconds);
+                    (Cow::Borrowed(&m.radiance), then + clock.elapsed())
+                })
                 .ok_or_else(|| {
                     Error::Runtime(
                         "the transfer was relit for other maps as it was read: open it again"
@@ -103,7 +113,7 @@ pub fn relight<'a>(transfer: &'a Transfer, env_coeffs: &[[f32; 3]]) -> Result<Co
         || env.each_voxel(t_ri, n, stride).collect(),
         || env.each_voxel(f_ms, n, stride).collect(),
     );
-    Ok(Cow::Owned(clamped(direct, indirect)))
+    Ok((Cow::Owned(clamped(direct, indirect)), clock.elapsed()))
 }
 
 /// One environment's SH coefficients as channel planes, cut to what a transfer of `stride`
@@ -187,6 +197,8 @@ pub struct StreamRelight {
     stride: usize,
     /// Per map, the unclamped parts so far: T_ri's, then F_ms's.
     parts: Vec<[Vec<[f32; 3]>; 2]>,
+    /// Per map, the time relighting has taken so far.
+    seconds: Vec<f64>,
 }
 
 impl StreamRelight {
@@ -200,6 +212,7 @@ impl StreamRelight {
                 .collect(),
             stride,
             parts: envs.iter().map(|_| Default::default()).collect(),
+            seconds: vec![0.0; envs.len()],
         }
     }
 
@@ -207,17 +220,30 @@ impl StreamRelight {
     pub fn take(&mut self, part: usize, voxels: &Coefficients) {
         let stride = self.stride;
         let count = voxels.len() / stride.max(1);
-        for ((_, env), parts) in self.envs.iter().zip(&mut self.parts) {
+        for (((_, env), parts), seconds) in
+            self.envs.iter().zip(&mut self.parts).zip(&mut self.seconds)
+        {
+            let clock = Instant::now();
             parts[part].par_extend(env.each_voxel(voxels, count, stride));
+            *seconds += clock.elapsed().as_secs_f64();
         }
     }
 
     /// Each map with its radiance, once both parts are in.
-    pub fn finish(self) -> Vec<(Vec<[f32; 3]>, Radiance)> {
+    pub fn finish(self) -> Vec<RelitMap> {
         self.envs
             .into_iter()
             .zip(self.parts)
-            .map(|((env, _), [direct, indirect])| (env, clamped(direct, indirect)))
+            .zip(self.seconds)
+            .map(|(((env, _), [direct, indirect]), seconds)| {
+                let clock = Instant::now();
+                let radiance = clamped(direct, indirect);
+                RelitMap {
+                    env,
+                    radiance,
+                    seconds: seconds + clock.elapsed().as_secs_f64(),
+                }
+            })
             .collect()
     }
 }
@@ -267,7 +293,7 @@ mod tests {
         let c = [0.25f32, 1.0, 3.5];
         let mut env = vec![[0.0f32; 3]; 9];
         env[0] = c.map(|v| v * sqrt_4pi);
-        let r = relight(&t, &env).unwrap();
+        let (r, _) = relight(&t, &env).unwrap();
         assert_eq!(r.len(), t.layout.len());
         for (d, i) in (0..r.len()).map(|s| (r.direct(s), r.indirect(s))) {
             for ch in 0..3 {
@@ -291,7 +317,7 @@ mod tests {
             _ => (100.0, 100.0),
         });
         let env = vec![[4.0, 8.0, 12.0]; 4];
-        let r = relight(&t, &env).unwrap();
+        let (r, _) = relight(&t, &env).unwrap();
         let inv = 1.0 / (4.0 * std::f32::consts::PI);
         for (slot, (d, i)) in (0..r.len())
             .map(|s| (r.direct(s), r.indirect(s)))
@@ -320,12 +346,12 @@ mod tests {
         let env: Vec<[f32; 3]> = (0..100)
             .map(|i| [i as f32 * 0.01, 1.0 - i as f32 * 0.005, 0.3])
             .collect();
-        let a = relight(&t, &env).unwrap();
+        let (a, _) = relight(&t, &env).unwrap();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
             .build()
             .unwrap();
-        let b = pool.install(|| relight(&t, &env).unwrap());
+        let (b, _) = pool.install(|| relight(&t, &env).unwrap());
         assert_eq!(a, b);
     }
 }

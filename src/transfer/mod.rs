@@ -58,10 +58,27 @@ pub enum TransferLight {
         t_ri: Coefficients,
         f_ms: Coefficients,
     },
-    /// What the coefficients give under each of a render's maps (its SH coefficients, as
-    /// [`crate::render::relight::relight`] takes them), relit as a cache streamed them in
-    /// ([`cache::read_relit`]) and never held.
-    Relit(Vec<(Vec<[f32; 3]>, Radiance)>),
+    /// What the coefficients give under each of a render's maps, relit as a cache streamed them
+    /// in ([`cache::read_relit`]) and never held.
+    Relit(Vec<RelitMap>),
+}
+
+/// One map's light on a transfer relit as a cache streamed in.
+#[derive(Debug, Clone)]
+pub struct RelitMap {
+    /// The map's SH coefficients, as [`crate::render::relight::relight`] takes them.
+    pub env: Vec<[f32; 3]>,
+    pub radiance: Radiance,
+    /// The time its relighting took while the cache was read (`--stats` counts it as relight,
+    /// not read).
+    pub seconds: f64,
+}
+
+/// The same light under the same map, however long it took.
+impl PartialEq for RelitMap {
+    fn eq(&self, other: &RelitMap) -> bool {
+        self.env == other.env && self.radiance == other.radiance
+    }
 }
 
 impl Transfer {
@@ -86,7 +103,7 @@ impl Transfer {
     pub fn coefficient_bytes(&self) -> usize {
         match &self.light {
             TransferLight::Coefficients { t_ri, f_ms } => t_ri.memory_bytes() + f_ms.memory_bytes(),
-            TransferLight::Relit(maps) => maps.iter().map(|(_, r)| r.memory_bytes()).sum(),
+            TransferLight::Relit(maps) => maps.iter().map(|m| m.radiance.memory_bytes()).sum(),
         }
     }
 }
