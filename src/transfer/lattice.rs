@@ -107,6 +107,7 @@ use super::layout::TransferLayout;
 use super::memory::sun_krylov_bytes;
 use super::Medium;
 use crate::volume::bricks::BrickSampler;
+use crate::volume::transmittance::through_and_leaving;
 use crate::volume::DensityField;
 
 /// Stop when the estimated energy still to come is below this fraction of the total; that tail is
@@ -783,21 +784,6 @@ struct Segment {
 /// Sub-step of a segment march, in voxels: segments are short (K/2 to K·√3 voxels) and marched
 /// once per link, so two samples per voxel cost little and resolve a cell's density profile.
 const SEGMENT_STEP_VOXELS: f32 = 0.5;
-
-/// e^(−t) and (1 − e^(−t))/t, the share of light emitted uniformly along a sub-step of optical
-/// depth t that leaves it, from one `exp`: a third of the time of `exp_m1`, in the loop that
-/// most of a suns' lattice build spends its time in.
-fn through_and_leaving(t: f32) -> (f32, f32) {
-    // Below this the quotient would lose digits to 1 − e^(−t), and the series to t⁴ is within
-    // t⁵/720 < 2·10⁻⁸ of it; above, 1 − e^(−t) is within 10⁻⁶ relative.
-    const SERIES_BELOW: f32 = 0.1;
-    let through = (-t).exp();
-    let leaving = match t < SERIES_BELOW {
-        true => 1.0 - t * (0.5 - t * (1.0 / 6.0 - t * (1.0 / 24.0 - t / 120.0))),
-        false => (1.0 - through) / t,
-    };
-    (through, leaving)
-}
 
 /// A segment march's sub-steps: their densities, and each one's e^(−t) and (1 − e^(−t))/t
 /// ([`through_and_leaving`]). Held by a thread across the cells it links, so a march fills only

@@ -321,12 +321,7 @@ impl<'a> OpticalDepth<'a> {
             let g = importance.as_mut().map_or(1.0, |g| g(p, rho));
             // T averaged over the step exactly for the density of its midpoint: at an optical
             // depth per step near one, T at the midpoint alone is 1–2 % low.
-            let delta = self.sigma_t * rho * step;
-            let across = (-delta).exp();
-            let mean = match delta > 1e-4 {
-                true => (1.0 - across) / delta,
-                false => 1.0 - 0.5 * delta,
-            };
+            let (across, mean) = through_and_leaving(self.sigma_t * rho * step);
             weighted += w * t * mean;
             total += w * g;
             t *= across;
@@ -433,6 +428,21 @@ impl<'a> OpticalDepth<'a> {
         }
         tau
     }
+}
+
+/// e^(−t) and (1 − e^(−t))/t over a step of optical depth t: what crosses it, and what of the
+/// light emitted uniformly along it leaves it — T's mean over the step. From one `exp`, a third
+/// of the time of `exp_m1`: the lattice's link build spends most of its time here.
+pub(crate) fn through_and_leaving(t: f32) -> (f32, f32) {
+    // Below this the quotient would lose digits to 1 − e^(−t), and the series to t⁴ is within
+    // t⁵/720 < 2·10⁻⁸ of it; above, 1 − e^(−t) is within 10⁻⁶ relative.
+    const SERIES_BELOW: f32 = 0.1;
+    let through = (-t).exp();
+    let leaving = match t < SERIES_BELOW {
+        true => 1.0 - t * (0.5 - t * (1.0 / 6.0 - t * (1.0 / 24.0 - t / 120.0))),
+        false => (1.0 - through) / t,
+    };
+    (through, leaving)
 }
 
 #[cfg(test)]
@@ -708,5 +718,20 @@ mod tests {
         // 128 voxels of density 1 are 64 world units: τ = 0.64.
         let tau = depth_to_infinity(&d, Vec3::new(60.0, 64.0, 64.0), Vec3::X);
         assert!((tau - 0.64).abs() < 1e-4, "{tau}");
+    }
+
+    #[test]
+    fn a_steps_through_and_leaving_shares_are_exact_on_both_sides_of_the_series() {
+        for t in [
+            0.0f64, 1e-6, 1e-3, 0.05, 0.0999, 0.1, 0.1001, 0.5, 2.0, 9.0, 40.0,
+        ] {
+            let (through, leaving) = through_and_leaving(t as f32);
+            let exact_leaving = if t == 0.0 { 1.0 } else { -(-t).exp_m1() / t };
+            assert!(((through as f64) / (-t).exp() - 1.0).abs() < 1e-6, "{t}");
+            assert!(
+                ((leaving as f64) / exact_leaving - 1.0).abs() < 1e-6,
+                "{t}: {leaving}"
+            );
+        }
     }
 }

@@ -317,18 +317,3 @@ fn a_suns_gmres_solve_gives_what_the_generations_give() {
     assert!(error < 1e-4, "{error:e} of the fluence's norm");
     assert!(krylov.iter().all(|&f| f >= 0.0));
 }
-
-#[test]
-fn a_sub_steps_through_and_leaving_shares_are_exact_on_both_sides_of_the_series() {
-    for t in [
-        0.0f64, 1e-6, 1e-3, 0.05, 0.0999, 0.1, 0.1001, 0.5, 2.0, 9.0, 40.0,
-    ] {
-        let (through, leaving) = through_and_leaving(t as f32);
-        let exact_leaving = if t == 0.0 { 1.0 } else { -(-t).exp_m1() / t };
-        assert!(((through as f64) / (-t).exp() - 1.0).abs() < 1e-6, "{t}");
-        assert!(
-            ((leaving as f64) / exact_leaving - 1.0).abs() < 1e-6,
-            "{t}: {leaving}"
-        );
-    }
-}
