@@ -781,9 +781,13 @@ struct Segment {
     read_emit: f32,
 }
 
-/// Sub-step of a segment march, in voxels: segments are short (K/2 to K·√3 voxels) and marched
-/// once per link, so two samples per voxel cost little and resolve a cell's density profile.
-const SEGMENT_STEP_VOXELS: f32 = 0.5;
+/// Sub-step of a segment march, in voxels: one density sample per voxel crossed, as T_ri's rays
+/// take ([`crate::volume::transmittance::STEP_VOXELS`]). Each sub-step is integrated exactly for
+/// its midpoint's density, so a thick voxel costs no accuracy: against half-voxel sub-steps, the
+/// torus and cloud fixtures at σt 1 (256×144, built-in sky and studio.exr, albedo 0.9) moved by
+/// at most 0.01 point of relative RMSE against the path tracer, and a one-sun render of the bench
+/// cloud (σt 1.6, 1920×1080) by 0.26 % relative RMSE, for half the link build's samples.
+const SEGMENT_STEP_VOXELS: f32 = 1.0;
 
 /// A segment march's sub-steps: their densities, and each one's e^(−t) and (1 − e^(−t))/t
 /// ([`through_and_leaving`]). Held by a thread across the cells it links, so a march fills only
