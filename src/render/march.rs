@@ -11,9 +11,17 @@
 //!
 //! **One step.** Density is taken at the step's midpoint and held over its length Δ, so the step's
 //! transmittance is exactly e^{−σt Δ} and the in-scatter integral ∫₀^Δ e^{−σt s} σs Ls ds is exactly
-//! albedo·(1 − e^{−σt Δ})·Ls, weighted by the transmittance Tr in front of the step. Steps are
-//! never split: with or without suns a ray's transmittance is the same; only a sun's light, which
-//! can fall by e^{−τ} within a thick step, is summed over sub-steps ([`SunRadiance`]).
+//! albedo·(1 − e^{−σt Δ})·Ls, weighted by the transmittance Tr in front of the step. With or
+//! without suns a ray's transmittance is the same; a sun's light, which can fall by e^{−τ} within
+//! a thick step, is summed over sub-steps ([`SunRadiance`]).
+//!
+//! **Surface entries.** One sample per step places a thick medium's face anywhere within a step:
+//! the face's one-voxel density ramp is missed by the step whose midpoint is still outside it and
+//! held over the whole of the next, so a pixel's light jumps with the jitter. The first step that
+//! finds density after one that found none (or that the DDA skipped: density 0) is therefore
+//! marched again with that empty step, in [`ENTRY_SUBSTEPS`] pieces that each hold their own
+//! midpoint's density. The empty step added nothing, so nothing counts twice, and which steps
+//! are entries depends on the densities alone, so a skipping march still equals a plain one.
 //!
 //! Units: the ray is parametrised by *world* distance t (the index-space direction is the world
 //! direction divided by the voxel scale per axis), so σt = sigma_t·ρ per world unit multiplies a
@@ -46,6 +54,14 @@ pub const TERMINATION_TRANSMITTANCE: f32 = 1e-3;
 /// the albedo-0 chord error is 1.5e-3 (3.8e-4 at 0.5) and the white furnace through the whole
 /// chain is unchanged (2.75 %). Half the steps of 0.5 voxel, at half the march's cost.
 pub const DEFAULT_STEP_VOXELS: f32 = 1.0;
+
+/// Pieces a surface entry is marched in (module doc, "Surface entries"): the step that first
+/// finds density after an empty one, and that empty one, in pieces of half a step. Measured on the
+/// torus fixture under one sun at one optical depth per voxel, one sample per pixel (256×144,
+/// single scattering, against 8192-sample path-traced references): 5.54 % relative RMSE, 82.1 %
+/// of the lit pixels within 10 %, with one sample per step; 4.26 % and 92.5 % with these four
+/// pieces (eight: 4.21 %; every step halved instead: 3.84 % and 94.9 %, for twice the march).
+const ENTRY_SUBSTEPS: usize = 4;
 
 /// Most optical depth a sun's light is held over: across a thicker step it falls by e^{−τ_sun}
 /// as the camera's does, and the step's share of it is summed over sub-steps of depth
@@ -603,6 +619,53 @@ struct RayState {
     weight_sum: f64,
 }
 
+/// A stretch of a ray the march holds one density over: its midpoint `p` (index space) at `t`
+/// from the ray's entry, its density there, its index-space `span` and world `length`.
+struct Piece {
+    p: Vec3,
+    t: f32,
+    rho: f32,
+    span: Vec3,
+    length: f32,
+}
+
+impl RayState {
+    /// Adds `piece`'s light to `sum` and its transmittance to the ray; `true` once the ray is
+    /// spent ([`TERMINATION_TRANSMITTANCE`]).
+    #[inline(always)]
+    fn take<S: InScatter>(
+        &mut self,
+        scene: &Scene<S>,
+        piece: Piece,
+        sum: &mut S::Sum,
+        sampler: &mut BrickSampler,
+    ) -> bool {
+        let Medium { sigma_t, albedo } = scene.medium;
+        let tau = sigma_t * piece.rho * piece.length;
+        // One exp: glibc's expf costs about a third of expm1f (measured: 10 % of the render's
+        // CPU time). The opacity 1 − e^{−τ} loses relative precision only for τ ≲ 1e-4, where
+        // the step adds almost nothing, and Tr still telescopes.
+        let step_tr = (-tau).exp();
+        if albedo > 0.0 {
+            let step = Step {
+                p: piece.p,
+                span: piece.span,
+                rho: piece.rho,
+                front: self.tr,
+                scatter: self.tr * albedo,
+                tau,
+                tr: step_tr,
+            };
+            scene.source.add(&step, sum, sampler);
+        }
+        let w = (self.tr * (1.0 - step_tr)) as f64;
+        self.depth_sum += piece.t as f64 * w;
+        self.weight_sum += w;
+        self.tr *= step_tr;
+        self.tr < TERMINATION_TRANSMITTANCE
+    }
+}
+
 /// Marches one world-space ray (`dir` unit length); `jitter` ∈ [0, 1) shifts the step lattice.
 pub fn march_ray<S: InScatter>(
     scene: &Scene<S>,
@@ -637,7 +700,6 @@ pub fn march_ray<S: InScatter>(
     let entry = (o + d * t_entry).as_vec3();
     let d32 = d.as_vec3();
     let span = d32 * step_f32;
-    let Medium { sigma_t, albedo } = scene.medium;
     let mut state = RayState {
         tr: 1.0,
         depth_sum: 0.0,
@@ -647,6 +709,8 @@ pub fn march_ray<S: InScatter>(
     let mut next_k = 0u64;
     let mut taken = 0u64;
     let mut terminated_at: Option<u64> = None;
+    // The last step that held density: a step after any other enters the medium.
+    let mut filled: Option<u64> = None;
     let mut run = |t_a: f64, t_b: f64| -> ControlFlow<()> {
         let k_hi = k_at(t_b).min(k_end);
         let k_lo = k_at(t_a).max(next_k);
@@ -661,32 +725,46 @@ pub fn march_ray<S: InScatter>(
             kf += 1.0;
             let p = entry + d32 * s;
             let rho = sampler.sample(p);
-            if rho > 0.0 {
-                let tau = sigma_t * rho * step_f32;
-                // One exp: glibc's expf costs about a third of expm1f (measured: 10 % of the
-                // render's CPU time). The opacity 1 − e^{−τ} loses relative precision only for
-                // τ ≲ 1e-4, where the step adds almost nothing, and Tr still telescopes.
-                let step_tr = (-tau).exp();
-                if albedo > 0.0 {
-                    let step = Step {
+            if rho <= 0.0 {
+                continue;
+            }
+            // A surface entry (module doc): this step and the empty one before it, from no
+            // nearer than the ray's start, in ENTRY_SUBSTEPS pieces.
+            let entering = filled != Some(k.wrapping_sub(1));
+            filled = Some(k);
+            let spent = match entering {
+                false => {
+                    let piece = Piece {
                         p,
-                        span,
+                        t: s,
                         rho,
-                        front: state.tr,
-                        scatter: state.tr * albedo,
-                        tau,
-                        tr: step_tr,
+                        span,
+                        length: step_f32,
                     };
-                    scene.source.add(&step, sum, sampler);
+                    state.take(scene, piece, sum, sampler)
                 }
-                let w = (state.tr * (1.0 - step_tr)) as f64;
-                state.depth_sum += (t_entry + s as f64) * w;
-                state.weight_sum += w;
-                state.tr *= step_tr;
-                if state.tr < TERMINATION_TRANSMITTANCE {
-                    terminated_at = Some(k + 1);
-                    return ControlFlow::Break(());
+                true => {
+                    let start = (s - 1.5 * step_f32).max(0.0);
+                    let length = (s + 0.5 * step_f32 - start) / ENTRY_SUBSTEPS as f32;
+                    (0..ENTRY_SUBSTEPS).any(|j| {
+                        let t = start + (j as f32 + 0.5) * length;
+                        let p = entry + d32 * t;
+                        let rho = sampler.sample(p);
+                        let span = d32 * length;
+                        let piece = Piece {
+                            p,
+                            t,
+                            rho,
+                            span,
+                            length,
+                        };
+                        rho > 0.0 && state.take(scene, piece, sum, sampler)
+                    })
                 }
+            };
+            if spent {
+                terminated_at = Some(k + 1);
+                return ControlFlow::Break(());
             }
         }
         next_k = next_k.max(k_hi);
@@ -711,7 +789,7 @@ pub fn march_ray<S: InScatter>(
     stats.samples_skipped += reached.saturating_sub(taken);
     out.transmittance = tr;
     if weight_sum > 0.0 {
-        out.depth = (depth_sum / weight_sum) as f32;
+        out.depth = (t_entry + depth_sum / weight_sum) as f32;
     }
     out
 }

@@ -762,3 +762,38 @@ fn a_split_step_across_a_shadows_edge_reads_each_sub_steps_depth() {
     .light(&mut field.sampler(), &mut ShadowCursor::default());
     assert!((got / looked_up - 1.0).abs() < 1e-5, "{got} vs {looked_up}");
 }
+
+#[test]
+fn a_surface_entry_is_marched_in_pieces() {
+    // The sun behind the camera, which looks into a block's top face at an angle: the sun's depth
+    // at every point is the camera's, so L = albedo·p·E·∫e^{−2τ}dτ = albedo·p·E/2 for a block
+    // this thick, wherever the face's ramp falls between the steps. With one density sample per
+    // step the worst of 50 jitters is 7.5 % off at one optical depth per voxel and 17 % at two;
+    // with the entry in pieces, 3.7 and 3.4 %.
+    let field = DensityField::new(block_box(IVec3::new(32, 32, 24)));
+    let dir = Vec3::new(0.3, 0.0, 1.0).normalize();
+    for sigma_t in [1.0f32, 2.0] {
+        let albedo = 0.8;
+        let shadow = ShadowVolume::build(&field, sigma_t, dir);
+        let source = SunRadiance::new([(&shadow, [1.0; 3])], None);
+        let scene = Scene::new(&field, medium(sigma_t, albedo), &source, None);
+        let want = albedo * PHASE / 2.0;
+        for j in 0..50 {
+            let jitter = j as f32 / 50.0;
+            let ray = march_ray(
+                &scene,
+                Vec3::new(16.0, 16.0, 40.0) + 20.0 * dir,
+                -dir,
+                jitter,
+                &MarchSettings::default(),
+                &mut scene.scratch(),
+                &mut MarchStats::default(),
+            );
+            let got = ray.direct[0];
+            assert!(
+                (got / want - 1.0).abs() < 0.05,
+                "σt {sigma_t}, jitter {jitter}: {got} vs {want}"
+            );
+        }
+    }
+}
