@@ -213,9 +213,10 @@ impl Scene {
     }
 
     /// What a user should know before trusting a picture of this scene: a volume with no density
-    /// to show, or — for a transfer at 1/`scale` resolution (`None`: no transfer, the path
-    /// tracer, even of a cache) — transfer voxels too thick to resolve the light; a cache's own scale
-    /// wins over `scale`.
+    /// to show, or — for a transfer at 1/`scale` resolution (`None`: no soft light through a
+    /// transfer, as the path tracer's, even of a cache, or a render without an environment's
+    /// light) — transfer voxels too thick to resolve the light; a cache's own scale wins over
+    /// `scale`.
     pub fn warnings(&self, scale: Option<i32>) -> Vec<String> {
         let grid = &self.field.grid;
         if grid.value_stats().is_none_or(|s| s.max <= 0.0) {

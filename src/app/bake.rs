@@ -27,7 +27,7 @@ pub fn run(cmd: &BakeCmd, global: &GlobalArgs) -> Result<()> {
             cmd.input.display()
         )));
     }
-    let Some(stats) = prepare_bake(&mut scene, &config, cmd.bake.dry_run, global)? else {
+    let Some(stats) = prepare_bake(&mut scene, &config, cmd.bake.dry_run, true, global)? else {
         return Ok(());
     };
     let clock = Instant::now();
@@ -57,21 +57,25 @@ pub fn run(cmd: &BakeCmd, global: &GlobalArgs) -> Result<()> {
 
 /// Plans the bake of `scene` and, unless `--dry-run` (which prints the plan and returns `None`),
 /// checks the memory budget and bakes. Warnings come before a plan or a bake, never before a
-/// refusal, so an error stays one line.
+/// refusal, so an error stays one line; `soft_light`: whether an environment's light will be
+/// relit through the transfer (a render with `--env-scale 0` has none, so no warning about its
+/// resolution).
 pub fn prepare_bake(
     scene: &mut Scene,
     config: &BakeConfig,
     dry_run: bool,
+    soft_light: bool,
     global: &GlobalArgs,
 ) -> Result<Option<BakeStats>> {
     let plan = scene.plan(config);
+    let scale = soft_light.then_some(config.settings.scale);
     if dry_run {
-        warn(&scene.warnings(Some(config.settings.scale)));
+        warn(&scene.warnings(scale));
         println!("{}", plan.describe());
         return Ok(None);
     }
     plan.check_budget(&scene.field, &config.settings, config.max_memory)?;
-    warn(&scene.warnings(Some(config.settings.scale)));
+    warn(&scene.warnings(scale));
     Ok(Some(scene.bake(
         config,
         &Bars {

@@ -535,9 +535,12 @@ fn transfer(
         }
     }
     stats["from_cache"] = json!(scene.transfer.is_some());
+    // Only an environment's soft light is held at the transfer's resolution.
+    let soft_light = view.lighting.scale > 0.0;
+    let warn_scale = soft_light.then_some(config.settings.scale);
     if scene.transfer.is_none() {
         let clock = Instant::now();
-        let Some(bake) = prepare_bake(scene, config, args.bake.dry_run, global)? else {
+        let Some(bake) = prepare_bake(scene, config, args.bake.dry_run, soft_light, global)? else {
             println!("{}", sun_plan(scene, view.lighting, Some(config)));
             return Ok(None);
         };
@@ -560,7 +563,7 @@ fn transfer(
         memory::image_bytes(view.camera.width, view.camera.height, view.png),
     );
     if args.bake.dry_run {
-        warn(&scene.warnings(Some(config.settings.scale)));
+        warn(&scene.warnings(warn_scale));
         println!("{}", sun_plan(scene, view.lighting, None));
         println!("render: {}", estimate.describe());
         return Ok(None);
@@ -568,7 +571,7 @@ fn transfer(
     estimate.check_budget(config.max_memory)?;
     // Warnings after the last refusal, so an error stays one line (a bake warned already).
     if from_cache {
-        warn(&scene.warnings(Some(config.settings.scale)));
+        warn(&scene.warnings(warn_scale));
     }
     let settings = MarchSettings {
         spp: view.spp,

@@ -148,7 +148,7 @@ fn a_bake_too_thick_to_resolve_says_so_and_which_flag_helps() {
 }
 
 #[test]
-fn a_render_from_a_thick_cache_warns_too() {
+fn a_render_from_a_thick_cache_warns_too_unless_no_soft_light_is_relit() {
     let dir = tempfile::tempdir().unwrap();
     let input = fixture("small_cloud.vdb");
     let bake = vscatter_in(
@@ -184,6 +184,35 @@ fn a_render_from_a_thick_cache_warns_too() {
         "{}",
         stderr(&render)
     );
+    // Lit by a sun alone (no environment's light), nothing is held at the transfer's resolution,
+    // from the cache or from a bake on the way.
+    let input = input.to_str().unwrap();
+    for source in ["c.vtc", input] {
+        let sun_only = vscatter_in(
+            dir.path(),
+            &[
+                "render",
+                source,
+                "-o",
+                "s.png",
+                "--res",
+                "32x18",
+                "--sigma-t",
+                "20",
+                "--samples",
+                "16",
+                "--bands",
+                "2",
+                "--env-scale",
+                "0",
+                "--sun",
+                "0,1,0",
+                "--quiet",
+            ],
+        );
+        assert!(sun_only.status.success(), "{}", stderr(&sun_only));
+        assert_eq!(stderr(&sun_only), "", "{source}");
+    }
 }
 
 #[test]
