@@ -754,13 +754,29 @@ fn a_split_step_across_a_shadows_edge_reads_each_sub_steps_depth() {
         (parabola / looked_up - 1.0).abs() > 0.05,
         "{parabola} vs {looked_up}"
     );
+    let mut track = SunTrack::default();
     let got = Split {
         step: &step,
         volume: &shadow,
         middle,
     }
-    .light(&mut field.sampler(), &mut ShadowCursor::default());
+    .light(&mut field.sampler(), &mut track);
     assert!((got / looked_up - 1.0).abs() < 1e-5, "{got} vs {looked_up}");
+    // The next step starts where this one ended and takes the depth read there, not a lookup of
+    // its own: its light is the same.
+    let next = Step {
+        p: p + span,
+        ..step
+    };
+    let split = Split {
+        step: &next,
+        volume: &shadow,
+        middle: shadow.optical_depth(next.p, 1.0, &mut sampler, &mut cursor),
+    };
+    assert!(track.last_end.is_some());
+    let taken = split.light(&mut field.sampler(), &mut track);
+    let fresh = split.light(&mut field.sampler(), &mut SunTrack::default());
+    assert!((taken / fresh - 1.0).abs() < 1e-6, "{taken} vs {fresh}");
 }
 
 #[test]
