@@ -33,10 +33,10 @@
 //! along it: along the light the depth inside a lit surface grows as the square of the distance
 //! through the density's one-voxel ramp, and a straight line between two voxels' depths put the
 //! sunlit side of a cloud 10 % too dark at one optical depth per voxel; across it, √τ follows that
-//! growth where τ itself would bend ([`ShadowVolume::on_slice`]). Where the four depths around the landing
-//! point are far apart (a shadow's edge, a surface the light grazes) no interpolation holds, and
-//! the walk goes on, through empty space too, until they agree or the light that could reach the
-//! camera from there is spent ([`LANDING_SPREAD`], [`VISIBLE_DEPTH`]).
+//! growth where τ itself would bend ([`ShadowVolume::on_slice`]). Where the four depths around
+//! the landing point are far apart (a shadow's edge, a surface the light grazes) no interpolation
+//! holds, and the walk goes on, through empty space too, until they agree or the light that could
+//! reach the camera from there is spent ([`LANDING_SPREAD`], [`VISIBLE_DEPTH`]).
 
 use std::ops::RangeInclusive;
 
