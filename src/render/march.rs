@@ -278,6 +278,7 @@ impl InScatter for SunRadiance<'_> {
         self.flush(sum);
         for track in &mut sum.tracks {
             track.last_end = None;
+            track.cursor.end_ray();
         }
         [
             std::mem::take(&mut sum.direct),

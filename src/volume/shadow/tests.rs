@@ -313,3 +313,34 @@ fn under_a_lit_face_the_walk_does_not_brighten_the_light() {
         assert!((got / want - 1.0).abs() < 0.012, "{dir}: {got} vs {want}");
     }
 }
+
+#[test]
+fn after_a_deep_lookup_the_next_walks_short_and_a_new_ray_walks_in_full() {
+    // Points in the ball's shadowed half: a lookup after a deep one walks to the next slice only,
+    // whose depth stays within a few percent of the full walk's; `end_ray` forgets it, and the
+    // lookup is the full one again, exactly.
+    let field = DensityField::new(ball(20.0));
+    let dir = Vec3::new(0.5, 0.8, 0.3).normalize();
+    let vol = ShadowVolume::build(&field, 1.0, dir);
+    let mut sampler = field.sampler();
+    let (mut tested, mut shortened) = (0, 0);
+    for i in 0..400u32 {
+        let h = |s: u32| crate::math::hash::hash_unit(i, s, 3, 7) * 2.0 - 1.0;
+        let p = Vec3::splat(48.0) - dir * 10.0 + Vec3::new(h(0), h(1), h(2)) * 6.0;
+        let mut cursor = ShadowCursor::default();
+        let full = vol.optical_depth(p, 1.0, &mut sampler, &mut cursor);
+        if full <= DEEP_DEPTH {
+            continue;
+        }
+        tested += 1;
+        let short = vol.optical_depth(p, 1.0, &mut sampler, &mut cursor);
+        assert!((short / full - 1.0).abs() < 0.05, "{p}: {short} vs {full}");
+        shortened += (short != full) as u32;
+        cursor.end_ray();
+        assert_eq!(vol.optical_depth(p, 1.0, &mut sampler, &mut cursor), full);
+    }
+    assert!(
+        tested > 300 && shortened > tested / 2,
+        "{shortened} of {tested}"
+    );
+}
