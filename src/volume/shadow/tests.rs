@@ -95,38 +95,40 @@ fn a_gap_still_carries_the_shadow_of_what_lies_beyond_it() {
 
 /// Three overlapping smooth blobs (peak density 2) with a hole between them, as leaves over
 /// [0, 96)³: cloud-like structure at the scale of a few voxels and more.
-fn blobs() -> SparseGrid {
+/// The leaves of the 96³ box whose voxels `rho` makes positive, each voxel holding `rho` at its
+/// centre.
+fn leaves_of(rho: impl Fn(Vec3) -> f32) -> SparseGrid {
     let mut g = SparseGrid::new(Transform::default(), 0.0);
+    for b in 0..12 * 12 * 12 {
+        let origin = IVec3::new(b / 144, (b / 12) % 12, b % 12) * 8;
+        let mut values = [0.0; crate::volume::grid::LEAF_VOXELS];
+        for (i, v) in values.iter_mut().enumerate() {
+            *v = rho((origin + crate::volume::grid::slot_offset(i)).as_vec3());
+        }
+        if values.iter().any(|v| *v > 0.0) {
+            g.insert_leaf(origin, [u64::MAX; 8], values);
+        }
+    }
+    g
+}
+
+fn blobs() -> SparseGrid {
     let centres = [
         (Vec3::new(40.0, 40.0, 40.0), 14.0),
         (Vec3::new(60.0, 55.0, 45.0), 9.0),
         (Vec3::new(30.0, 62.0, 58.0), 6.0),
     ];
-    let rho = |p: Vec3| -> f32 {
-        centres
+    leaves_of(|p| {
+        let v = centres
             .iter()
             .map(|(c, r)| 2.0 * (-(p - *c).length_squared() / (r * r)).exp())
-            .sum::<f32>()
-    };
-    for bx in 0..12 {
-        for by in 0..12 {
-            for bz in 0..12 {
-                let origin = IVec3::new(bx, by, bz) * 8;
-                let mut values = [0.0; crate::volume::grid::LEAF_VOXELS];
-                for (i, v) in values.iter_mut().enumerate() {
-                    let p = origin + crate::volume::grid::slot_offset(i);
-                    *v = rho(p.as_vec3());
-                    if *v < 1e-3 {
-                        *v = 0.0;
-                    }
-                }
-                if values.iter().any(|v| *v > 0.0) {
-                    g.insert_leaf(origin, [u64::MAX; 8], values);
-                }
-            }
+            .sum::<f32>();
+        if v < 1e-3 {
+            0.0
+        } else {
+            v
         }
-    }
-    g
+    })
 }
 
 #[test]
@@ -265,20 +267,7 @@ fn across_a_shadow_edge_a_lookup_walks_on_until_the_depths_agree() {
 /// A ball of density 1 and radius `r` about (48, 48, 48): a one-voxel edge from 1 to 0 that
 /// curves through the slices.
 fn ball(r: f32) -> SparseGrid {
-    let mut g = SparseGrid::new(Transform::default(), 0.0);
-    let c = Vec3::splat(48.0);
-    for b in 0..12 * 12 * 12 {
-        let origin = IVec3::new(b / 144, (b / 12) % 12, b % 12) * 8;
-        let mut values = [0.0; crate::volume::grid::LEAF_VOXELS];
-        for (i, v) in values.iter_mut().enumerate() {
-            let p = origin + crate::volume::grid::slot_offset(i);
-            *v = f32::from((p.as_vec3() - c).length() < r);
-        }
-        if values.iter().any(|v| *v > 0.0) {
-            g.insert_leaf(origin, [u64::MAX; 8], values);
-        }
-    }
-    g
+    leaves_of(|p| f32::from((p - Vec3::splat(48.0)).length() < r))
 }
 
 #[test]
