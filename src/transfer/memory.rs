@@ -94,7 +94,9 @@ impl MemoryEstimate {
                 // Small lattices transport a chunk a thread, large ones one chunk at a time.
                 let in_flight = match voxels >= lattice::PARALLEL_SWEEP_LINKS {
                     true => 1,
-                    false => threads as u64,
+                    false => threads
+                        .min(lattice::chunks_transported(settings.bands))
+                        .max(1) as u64,
                 };
                 let transport = (links
                     + in_flight * transport_bytes(voxels, d, reflecting, TRANSPORT_ROW_BYTES))

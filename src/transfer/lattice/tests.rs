@@ -285,6 +285,38 @@ fn the_tail_gives_what_the_generations_not_swept_would() {
 }
 
 #[test]
+fn the_lattice_transports_its_own_bands_and_no_more() {
+    // A bake of more bands than LATTICE_BANDS: its lower coefficients are exactly those of a bake
+    // of LATTICE_BANDS, its highest carried band carries light, and nothing is added above it
+    // (F_ms's higher coefficients are the fit's correction alone).
+    let field = DensityField::new(block_box(IVec3::splat(24)));
+    let layout = TransferLayout::build(&field.grid, 6);
+    let medium = Medium {
+        sigma_t: 0.2,
+        albedo: 0.9,
+    };
+    let bake = |bands: usize| {
+        let lattice = Lattice::build(&field, &layout, LatticeKind::All, medium, bands);
+        let mut f_ms = vec![0f32; layout.len() * bands * bands];
+        lattice.bake_multiple(bands, 1.0, &mut f_ms);
+        f_ms
+    };
+    let (carried, wide) = (LATTICE_BANDS, LATTICE_BANDS + 2);
+    let (own, more) = (bake(carried), bake(wide));
+    let top = (carried - 1) * (carried - 1)..carried * carried;
+    let mut top_light = 0.0f32;
+    for (a, b) in own
+        .chunks_exact(carried * carried)
+        .zip(more.chunks_exact(wide * wide))
+    {
+        assert_eq!(a, &b[..carried * carried]);
+        assert!(b[carried * carried..].iter().all(|&v| v == 0.0));
+        top_light += a[top.clone()].iter().map(|v| v.abs()).sum::<f32>();
+    }
+    assert!(top_light > 0.0);
+}
+
+#[test]
 fn a_suns_gmres_solve_gives_what_the_generations_give() {
     // A 32³ cube of thin voxel cells (no cell reflects, so the solve takes GMRES) at albedo 0.99,
     // lit from above: the fluence against generations summed to 1e-9, and never negative.
