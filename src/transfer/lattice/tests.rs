@@ -99,6 +99,24 @@ fn inflow_is_the_environment_seen_from_each_line() {
         let row = &flux[j * coeffs..(j + 1) * coeffs];
         assert!(value(row, -unit(*d)) > value(row, unit(*d)) + 1e-3, "{d}");
     }
+    // Each band's power, carried by the lines' means ȳ_ij = P_ij·ℓ_j/(4π·w_j) weighted by their
+    // shares, is its power over the sphere, (2ℓ + 1)/4π.
+    for band in 0..bands {
+        let carried: f64 = (0..dirs.len())
+            .map(|j| {
+                let w = dirs.weights[j] as f64;
+                let per_mean = lengths[j] as f64 / (4.0 * std::f64::consts::PI * w);
+                (band * band..(band + 1) * (band + 1))
+                    .map(|i| w * (flux[j * coeffs + i] as f64 * per_mean).powi(2))
+                    .sum::<f64>()
+            })
+            .sum();
+        let power = (2 * band + 1) as f64 / (4.0 * std::f64::consts::PI);
+        assert!(
+            (carried / power - 1.0).abs() < 1e-4,
+            "band {band}: {carried} of {power}"
+        );
+    }
 }
 
 #[test]
