@@ -95,7 +95,10 @@ impl MemoryEstimate {
                 let in_flight = match voxels >= lattice::PARALLEL_SWEEP_LINKS {
                     true => 1,
                     false => threads
-                        .min(lattice::chunks_transported(settings.bands))
+                        .min(lattice::chunks_transported(
+                            settings.lattice,
+                            settings.bands,
+                        ))
                         .max(1) as u64,
                 };
                 let transport = (links

@@ -319,6 +319,15 @@ fn the_lattice_transports_its_own_bands_and_no_more() {
         lattice.bake_multiple(bands, 1.0, &mut f_ms);
         f_ms
     };
+    // Six beams carry bands 0 and 1 alone; the others, LATTICE_BANDS.
+    let kinds = [
+        LatticeKind::Faces,
+        LatticeKind::FacesEdges,
+        LatticeKind::All,
+        LatticeKind::FacesSkew,
+    ];
+    assert_eq!(kinds.map(|k| k.bands(10)), [2, 4, 4, 4]);
+    assert_eq!(kinds.map(|k| k.bands(1)), [1; 4]);
     let (carried, wide) = (LATTICE_BANDS, LATTICE_BANDS + 2);
     let (own, more) = (bake(carried), bake(wide));
     let top = (carried - 1) * (carried - 1)..carried * carried;
