@@ -121,15 +121,16 @@ use crate::volume::DensityField;
 /// 1.7–2× the generations (torus at 0.9: 12 → 6, cloud at 0.99: 67 → 36); at 1e-2 the image
 /// is 0.26 % off.
 pub const CONVERGENCE: f64 = 3e-3;
-/// SH bands the lattice transports; F_ms's higher coefficients are the fit's correction alone.
-/// D beams per node carry about D angular degrees of freedom, and light that has scattered once
-/// has lost the rest: past band 3 the lattice's fluence is the beams' aliasing of the
-/// environment's detail, not its multiple scattering. Measured against the path tracer (256×144,
-/// albedo 0.9, `docs/accuracy.md`), transporting 2, 3, 4, 5, 6 or all 10 bands: every row is as
-/// close or closer at 4 than at 10 — the cloud under studio.exr at σt 0.08 3.31 → 2.81 %, the
-/// torus at 1.92 optical depths per transfer voxel 14.11 → 12.82 %, and with `--lattice 6` and
-/// `18` alike — where 2 bands lose the light's direction (14.11 → 18.95 %). It is 2 of 13 chunks
-/// of coefficients: cloud_quarter's lattice at σt 0.2 took 29.9 s with 10 bands, 4.3 s with 4.
+/// The most SH bands a lattice transports ([`LatticeKind::bands`]); F_ms's higher coefficients
+/// are the fit's correction alone. D beams per node carry about D angular degrees of freedom,
+/// and light that has scattered once has lost the rest: past band 3 the lattice's fluence is
+/// the beams' aliasing of the environment's detail, not its multiple scattering. Measured against
+/// the path tracer (256×144, albedo 0.9, `docs/accuracy.md`, before the band gains of
+/// [`inflow`]), transporting 2, 3, 4, 5, 6 or all 10 bands: every row is as close or closer at 4
+/// than at 10 — the cloud under studio.exr at σt 0.08 3.31 → 2.81 %, the torus at 1.92 optical
+/// depths per transfer voxel 14.11 → 12.82 %, and with `--lattice 18` alike — where 2 bands lose
+/// the light's direction (14.11 → 18.95 %). It is 2 of 13 chunks of coefficients:
+/// cloud_quarter's lattice at σt 0.2 took 29.9 s with 10 bands, 4.3 s with 4.
 pub const LATTICE_BANDS: usize = 4;
 /// Chunks of coefficients a bake of `bands` on a lattice of `kind` transports after the DC
 /// term's own run.
