@@ -258,8 +258,8 @@ pub fn bake(
 
 /// Optical depth per transfer voxel (σt × K × voxel size × mean density) above which the 1/K
 /// resolution visibly costs accuracy under soft light: docs/accuracy.md measures the fixtures
-/// under studio.exr 4–5 % (single) and 7–9 % (multiple) off the path tracer at 0.96, 7 % and
-/// 12–14 % at 1.92, and 10–13 % and 23–25 % at the default σt; a sun's light, resolved per
+/// under studio.exr 4–5 % (single) and 6–7 % (multiple) off the path tracer at 0.96, 7 % and
+/// 10–12 % at 1.92, and 10–13 % and 22–23 % at the default σt; a sun's light, resolved per
 /// density voxel, leaves the default scene (the built-in sky) 7 % off.
 pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 
