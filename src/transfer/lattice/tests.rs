@@ -247,29 +247,32 @@ fn each_line_passes_light_to_the_next_active_cell_along_it() {
     }
 }
 
+/// F_ms of a cube of `edge` voxels (density 1, σt 0.2) at transfer cells of 6, `bands` bands,
+/// the generations stopped at `convergence`, and the lattice's stats.
+fn cube_f_ms(edge: i32, albedo: f32, bands: usize, convergence: f64) -> (Vec<f32>, LatticeStats) {
+    let field = DensityField::new(block_box(IVec3::splat(edge)));
+    let layout = TransferLayout::build(&field.grid, 6);
+    let medium = Medium {
+        sigma_t: 0.2,
+        albedo,
+    };
+    let mut lattice = Lattice::build(&field, &layout, LatticeKind::All, medium, bands);
+    lattice.convergence = convergence;
+    let mut f_ms = vec![0f32; layout.len() * bands * bands];
+    let stats = lattice.bake_multiple(bands, 1.0, &mut f_ms);
+    (f_ms, stats)
+}
+
 #[test]
 fn the_tail_gives_what_the_generations_not_swept_would() {
     // A 48³ cube at albedo 0.99 under a sky whose every coefficient is lit (so the chunks after
     // the DC term, which stop with its generations and its ratio, carry light too): F_ms stopped
     // at CONVERGENCE with the tail added against a run to 1e-9: 4e-6 of the DC fluence's norm.
     // Dropping the tail leaves it 3.6e-3 off at this tolerance, far outside the bound.
-    let field = DensityField::new(block_box(IVec3::splat(48)));
-    let layout = TransferLayout::build(&field.grid, 6);
-    let medium = Medium {
-        sigma_t: 0.2,
-        albedo: 0.99,
-    };
     let bands = 3;
     let coeffs = bands * bands;
-    let run = |convergence: f64| {
-        let mut lattice = Lattice::build(&field, &layout, LatticeKind::All, medium, bands);
-        lattice.convergence = convergence;
-        let mut f_ms = vec![0f32; layout.len() * coeffs];
-        let stats = lattice.bake_multiple(bands, 1.0, &mut f_ms);
-        (f_ms, stats)
-    };
-    let (short, quick) = run(CONVERGENCE);
-    let (long, slow) = run(1e-9);
+    let (short, quick) = cube_f_ms(48, 0.99, bands, CONVERGENCE);
+    let (long, slow) = cube_f_ms(48, 0.99, bands, 1e-9);
     assert!(quick.converged && slow.converged);
     assert!(
         2 * quick.generations < slow.generations,
@@ -307,18 +310,7 @@ fn the_lattice_transports_its_own_bands_and_no_more() {
     // A bake of more bands than LATTICE_BANDS: its lower coefficients are exactly those of a bake
     // of LATTICE_BANDS, its highest carried band carries light, and nothing is added above it
     // (F_ms's higher coefficients are the fit's correction alone).
-    let field = DensityField::new(block_box(IVec3::splat(24)));
-    let layout = TransferLayout::build(&field.grid, 6);
-    let medium = Medium {
-        sigma_t: 0.2,
-        albedo: 0.9,
-    };
-    let bake = |bands: usize| {
-        let lattice = Lattice::build(&field, &layout, LatticeKind::All, medium, bands);
-        let mut f_ms = vec![0f32; layout.len() * bands * bands];
-        lattice.bake_multiple(bands, 1.0, &mut f_ms);
-        f_ms
-    };
+    let bake = |bands: usize| cube_f_ms(24, 0.9, bands, CONVERGENCE).0;
     // Six beams carry bands 0 and 1 alone; the others, LATTICE_BANDS.
     let kinds = [
         LatticeKind::Faces,
