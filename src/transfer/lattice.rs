@@ -1268,7 +1268,7 @@ struct Source {
 pub struct Lattice {
     links: Links,
     medium: Medium,
-    /// The bands it transports: the caller's, at most [`LATTICE_BANDS`].
+    /// The bands it transports: the caller's, as many as its kind carries ([`LatticeKind::bands`]).
     bands: usize,
     /// Where the energy criterion stops ([`CONVERGENCE`]; tests go further to compare).
     convergence: f64,
@@ -1292,9 +1292,9 @@ impl Lattice {
         }
     }
 
-    /// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × bands²`), the lattice's own
-    /// bands' coefficients ([`LATTICE_BANDS`]) chunk by chunk, the chunks or each chunk's sweeps in
-    /// parallel ([`PARALLEL_SWEEP_LINKS`]).
+    /// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × bands²`), the coefficients of
+    /// the lattice's own bands ([`LatticeKind::bands`]) chunk by chunk, the chunks or each chunk's
+    /// sweeps in parallel ([`PARALLEL_SWEEP_LINKS`]).
     /// `energy_single` is Σ over nodes of T_ri's DC coefficient (the remaining energy is weighed
     /// against it).
     pub fn bake_multiple(
