@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use std::ops::ControlFlow;
 
+use crate::math::floor::ceil;
 use crate::math::ray::Ray;
 
 use super::field::DensityField;
@@ -388,12 +389,12 @@ impl<'a> OpticalDepth<'a> {
         if end <= t0 {
             return tau;
         }
-        let steps = ((end - t0) / step).ceil() as u32;
+        let steps = ceil(((end - t0) / step) as f64).max(0) as u32;
         let mut sampler = field.sampler();
         // Samples whose positions fall in [a, b): spans are half-open, so none is taken twice.
         let mut run = |a: f64, b: f64| {
-            let first = (((a - t0 as f64) / step as f64) - 0.5).ceil().max(0.0) as u32;
-            let last = ((((b - t0 as f64) / step as f64) - 0.5).ceil().max(0.0) as u32).min(steps);
+            let first = ceil((a - t0 as f64) / step as f64 - 0.5).max(0) as u32;
+            let last = (ceil((b - t0 as f64) / step as f64 - 0.5).max(0) as u32).min(steps);
             for k in first..last {
                 let p = origin + v * (t0 + (k as f32 + 0.5) * step);
                 let len = if k + 1 == steps {
