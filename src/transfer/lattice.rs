@@ -132,11 +132,20 @@ pub const CONVERGENCE: f64 = 3e-3;
 /// the light's direction (14.11 → 18.95 %). It is 2 of 13 chunks of coefficients:
 /// cloud_quarter's lattice at σt 0.2 took 29.9 s with 10 bands, 4.3 s with 4.
 pub const LATTICE_BANDS: usize = 4;
-/// Chunks of coefficients a bake of `bands` on a lattice of `kind` transports after the DC
+/// The chunks of coefficients (first, count) a lattice carrying `bands` transports after the DC
 /// term's own run.
+fn chunks_after_dc(bands: usize) -> Vec<(usize, usize)> {
+    let coeffs = bands * bands;
+    (1..coeffs)
+        .step_by(CHUNK)
+        .map(|c0| (c0, CHUNK.min(coeffs - c0)))
+        .collect()
+}
+
+/// How many chunks a bake of `bands` on a lattice of `kind` transports after the DC term's own
+/// run.
 pub(crate) fn chunks_transported(kind: LatticeKind, bands: usize) -> usize {
-    let carried = kind.bands(bands);
-    (carried * carried - 1).div_ceil(CHUNK)
+    chunks_after_dc(kind.bands(bands)).len()
 }
 /// A hard cap on generations, reached only by pathological inputs (albedo 1 in an enormous volume).
 pub const MAX_GENERATIONS: usize = 5000;
@@ -1330,11 +1339,7 @@ impl Lattice {
         for (f, dc) in f_ms.chunks_exact_mut(coeffs).zip(head) {
             f[0] += dc;
         }
-        let transported = carried * carried;
-        let rest: Vec<(usize, usize)> = (1..transported)
-            .step_by(CHUNK)
-            .map(|c0| (c0, CHUNK.min(transported - c0)))
-            .collect();
+        let rest = chunks_after_dc(carried);
         let in_flight = match self.links.parallel_sweeps {
             true => 1,
             false => rayon::current_num_threads(),
