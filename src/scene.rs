@@ -174,7 +174,7 @@ impl Scene {
 
     /// What baking this scene with `settings` will make and need, before it runs.
     pub fn plan(&self, config: &BakeConfig) -> BakePlan {
-        BakePlan::new(&self.field, &config.settings, config.medium.sigma_t)
+        BakePlan::new(&self.field, &config.settings, config.medium)
     }
 
     /// Bakes the transfer (check [`BakePlan::check_budget`] first: a bake allocates what its

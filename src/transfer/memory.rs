@@ -4,7 +4,7 @@
 
 use indicatif::HumanBytes as human;
 
-use super::{lattice, lattice::LatticeKind, single, BakeSettings, TransferLayout};
+use super::{lattice, lattice::LatticeKind, single, BakeSettings, Medium, TransferLayout};
 use crate::error::{Error, Result};
 use crate::math::krylov;
 use crate::volume::grid::{TileLevel, LEAF_LOG2};
@@ -67,6 +67,7 @@ impl MemoryEstimate {
         layout_bytes: usize,
         voxels: usize,
         settings: &BakeSettings,
+        footprints: bool,
         far: u64,
         reflecting: f64,
         threads: usize,
@@ -76,15 +77,26 @@ impl MemoryEstimate {
         let one = n * c * 4;
         // What each phase holds beyond the density and the layout (`transfer::bake`):
         // - T_ri's passes: the direction sets' SH weights and the far field's coarser density,
-        //   beside F_ms (the point values) and then T_ri too, and a single-scattering bake's
-        //   visibility, which draws the footprint means' starts;
+        //   beside F_ms (the point values) and then, in the footprint pass, T_ri too, and a
+        //   single-scattering bake's visibility, which draws the footprint means' starts;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
-        let single = 2 * one + sets + far + visibility.held;
         // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
         let rows = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
-        let fit = 2 * one + rows + visibility.held;
-        // - the lattice, beside F_ms alone: its links, with their places while they are built,
-        //   and then the transport's state, the bricks released.
+        let (single, fit) = match footprints {
+            true => (
+                2 * one + sets + far + visibility.held,
+                2 * one + rows + visibility.held,
+            ),
+            false => (one + sets + far, 0),
+        };
+        // - the lattice, beside F_ms and, where the point values are the direct light, their
+        //   copy as T_ri (the coarser density then gone), else the coarser density kept for the
+        //   footprint pass: its links, with their places while they are built, and then the
+        //   transport's state, the bricks released.
+        let beside = match footprints {
+            true => one + far,
+            false => 2 * one,
+        };
         let lattice = match settings.single_scatter {
             true => 0,
             false => {
@@ -104,7 +116,7 @@ impl MemoryEstimate {
                 let transport = (links
                     + in_flight * transport_bytes(voxels, d, reflecting, TRANSPORT_ROW_BYTES))
                 .saturating_sub(brick_bytes as u64);
-                one + far + build.max(transport)
+                beside + build.max(transport)
             }
         };
         // - the visibility, before T_ri's footprint pass, beside F_ms: its sweep, then the
@@ -294,12 +306,14 @@ pub struct BakePlan {
     pub estimated: bool,
     /// Bytes of the coarser levels of the density T_ri's rays will read ([`far_field_bytes`]).
     pub far_bytes: u64,
-    /// σt, kept so a refusal can estimate other scales (their cells are thicker or thinner).
-    pub sigma_t: f32,
+    /// The medium, kept so a refusal can estimate other scales (their cells are thicker or
+    /// thinner).
+    pub medium: Medium,
 }
 
 impl BakePlan {
-    pub fn new(field: &DensityField, settings: &BakeSettings, sigma_t: f32) -> BakePlan {
+    pub fn new(field: &DensityField, settings: &BakeSettings, medium: Medium) -> BakePlan {
+        let sigma_t = medium.sigma_t;
         let levels = single::far_field(&field.grid, sigma_t, settings.samples).1;
         let far = far_field_bytes(field, levels);
         let reflecting =
@@ -311,10 +325,10 @@ impl BakePlan {
             return BakePlan {
                 transfer_voxels: n,
                 transfer_tiles: n / 64,
-                estimate: estimate(field, layout as usize, n, settings, far, reflecting),
+                estimate: estimate(field, layout as usize, n, settings, medium, far, reflecting),
                 estimated: true,
                 far_bytes: far,
-                sigma_t,
+                medium,
             };
         }
         let layout = TransferLayout::build(&field.grid, settings.scale);
@@ -326,12 +340,13 @@ impl BakePlan {
                 layout.memory_bytes(),
                 layout.len(),
                 settings,
+                medium,
                 far,
                 reflecting,
             ),
             estimated: false,
             far_bytes: far,
-            sigma_t,
+            medium,
         }
     }
 
@@ -374,10 +389,19 @@ impl BakePlan {
             ..s
         };
         let means = lattice::DensityMeans::new(&field.grid);
-        let reflecting = |k| means.reflecting_share(self.sigma_t, k);
+        let reflecting = |k| means.reflecting_share(self.medium.sigma_t, k);
         let need = |settings: &BakeSettings, voxels: usize| {
             let r = reflecting(settings.scale);
-            estimate(field, layout_bytes, voxels, settings, self.far_bytes, r).total()
+            estimate(
+                field,
+                layout_bytes,
+                voxels,
+                settings,
+                self.medium,
+                self.far_bytes,
+                r,
+            )
+            .total()
         };
         // The finest coarser K that fits, from the estimated count at each K.
         let coarser = (s.scale + 1..=MAX_SCALE).find_map(|k| {
@@ -385,8 +409,16 @@ impl BakePlan {
             let voxels = usize::try_from(about).unwrap_or(usize::MAX);
             let bytes = (about.saturating_mul(LAYOUT_BYTES_PER_VOXEL)) as usize;
             let at_k = BakeSettings { scale: k, ..s };
-            let total =
-                estimate(field, bytes, voxels, &at_k, self.far_bytes, reflecting(k)).total();
+            let total = estimate(
+                field,
+                bytes,
+                voxels,
+                &at_k,
+                self.medium,
+                self.far_bytes,
+                reflecting(k),
+            )
+            .total();
             (total <= limit).then_some((k, total))
         });
         let coarser = match coarser {
@@ -567,6 +599,7 @@ fn estimate(
     layout_bytes: usize,
     voxels: usize,
     settings: &BakeSettings,
+    medium: Medium,
     far: u64,
     reflecting: f64,
 ) -> MemoryEstimate {
@@ -583,6 +616,7 @@ fn estimate(
         layout_bytes,
         voxels,
         settings,
+        settings.fits_footprints(medium),
         far,
         reflecting,
         rayon::current_num_threads(),

@@ -120,6 +120,36 @@ pub struct BakeSettings {
     pub seed: u64,
 }
 
+/// The albedo from which a multiple-scattering bake takes T_ri's point values as its direct light
+/// and traces no footprint pass ([`BakeSettings::fits_footprints`]). A multiple-scattering image
+/// holds the direct light only as its share 1 − albedo (the rest of a node's unscattered light is
+/// scattered, and F_ms carries it), and there the fitted footprint means are too dark in thick
+/// cells where the point values are a little too bright in thin ones. Measured against the path
+/// tracer (256×144, studio.exr, torus and cloud at 0.48, 1.92 and 5.2 optical depths per transfer
+/// voxel; docs/accuracy.md): at albedo 0.9 the point values are 0.0–0.2 points further off at
+/// 0.48 and 0.3–1.7 points closer in thick cells, at 0.8 0.2–0.3 points further and 0.4–3.1
+/// closer, at 0.7 0.4–0.7 further and 0.2–3.6 closer, at 0.5 1.0–1.7 further and mixed in thick
+/// cells (+2.3 to −3.1). Without the footprint pass T_ri costs half as much and two bake seeds
+/// are half as far apart (its noise is what they differ by).
+pub const POINT_DIRECT_ALBEDO: f32 = 0.8;
+
+impl BakeSettings {
+    /// Whether a bake of `medium` traces T_ri over the footprints and fits it
+    /// ([`POINT_DIRECT_ALBEDO`]): a `--single-scatter` bake always does, its image is all direct
+    /// light.
+    pub fn fits_footprints(&self, medium: Medium) -> bool {
+        self.single_scatter || medium.albedo < POINT_DIRECT_ALBEDO
+    }
+}
+
+/// Where a bake's direct light (its stored T_ri) comes from.
+enum Direct {
+    /// The footprint pass, fitted; it marches the far field's coarser density, kept for it.
+    Footprints(DensityMip),
+    /// T_ri's point values at the nodes ([`POINT_DIRECT_ALBEDO`]).
+    Points(Vec<f32>),
+}
+
 /// What a bake did, for `--stats`.
 #[derive(Debug, Clone, Default)]
 pub struct BakeStats {
@@ -155,24 +185,31 @@ pub fn bake(
     stats.transfer_voxels = layout.len();
     stats.transfer_tiles = layout.tile_count();
 
-    // T_ri twice: at the nodes (the point values the lattice's light is balanced against) and
-    // over the density around them (the footprint means the renderer's values are fitted to),
-    // with the lattice between them. The unscattered light the fit takes away from a node's
-    // point value has collided sooner, and the share albedo of it is scattered: F_ms gets
-    // albedo × (point − fitted), so T_ri + F_ms at a node is what it is with point values, and at
-    // albedo 1 exactly so (the white furnace). The point values go into F_ms as albedo × point
-    // before the lattice adds to it, and the fitted T_ri comes off at the end, so no phase holds
-    // the point values beside both F_ms and T_ri.
+    // T_ri at the nodes (the point values the lattice's light is balanced against), then, where
+    // the bake fits footprints, over the density around them (the footprint means the
+    // renderer's values are fitted to), with the lattice between them. The unscattered light the
+    // fit takes away from a node's point value has collided sooner, and the share albedo of it is
+    // scattered: F_ms gets albedo × (point − fitted), so T_ri + F_ms at a node is what it is with
+    // point values, and at albedo 1 exactly so (the white furnace). The point values go into F_ms
+    // as albedo × point before the lattice adds to it, and the fitted T_ri comes off at the end,
+    // so no phase holds the point values beside both F_ms and T_ri. A bake that does not fit
+    // footprints keeps the point values as T_ri, and the same subtraction leaves F_ms the
+    // lattice's scattered light alone.
     let coeffs = settings.bands * settings.bands;
     let n = layout.len();
+    let footprints = settings.fits_footprints(medium);
     let clock = std::time::Instant::now();
     // The coarser density lives through the T_ri passes.
     let (near, levels) = single::far_field(&field.grid, medium.sigma_t, settings.samples);
     let mip = DensityMip::build(&field.grid, levels);
     stats.far_field_bytes = mip.memory_bytes();
     let chord_step = single::chord_step(&field.grid, medium.sigma_t);
-    let single = |field: &DensityField, origins, visibility, bar: &indicatif::ProgressBar| {
-        let far = FarField { mip: &mip, near };
+    let single = |field: &DensityField,
+                  mip: &DensityMip,
+                  origins,
+                  visibility,
+                  bar: &indicatif::ProgressBar| {
+        let far = FarField { mip, near };
         let depth = OpticalDepth::new(field, medium.sigma_t, true)
             .with_far_field(far)
             .with_dark_test();
@@ -185,13 +222,21 @@ pub fn bake(
         };
         single::bake_single(&field.grid, &layout, &depth, single, visibility, bar)
     };
-    let mut f_ms = match settings.single_scatter {
-        true => vec![0.0; n * coeffs],
+    let (mut f_ms, direct) = match settings.single_scatter {
+        true => (vec![0.0; n * coeffs], Direct::Footprints(mip)),
         false => {
             let bar = progress.phase("single", n as u64);
-            let mut point = single(field, single::Origins::Node, None, &bar);
+            let mut point = single(field, &mip, single::Origins::Node, None, &bar);
             bar.finish_and_clear();
             stats.single_seconds = clock.elapsed().as_secs_f64();
+            // Point values as the direct light need no coarser density past this pass.
+            let direct = match footprints {
+                true => Direct::Footprints(mip),
+                false => {
+                    drop(mip);
+                    Direct::Points(point.clone())
+                }
+            };
 
             let clock = std::time::Instant::now();
             progress.phase("lattice", 0);
@@ -206,7 +251,7 @@ pub fn bake(
             drop(lattice);
             field.build_bricks();
             stats.lattice_seconds = clock.elapsed().as_secs_f64();
-            point
+            (point, direct)
         }
     };
 
@@ -223,18 +268,24 @@ pub fn bake(
         std::sync::Arc::new(shape)
     });
     let clock = std::time::Instant::now();
-    let bar = progress.phase("fit", n as u64);
-    let visibility = shape.as_ref().map(|s| &s.visibility);
-    let mut t_ri = single(field, single::Origins::Footprint, visibility, &bar);
-    drop(mip);
-    fit::least_squares(
-        &field.grid,
-        &layout,
-        &mut t_ri,
-        coeffs,
-        fit::FIT_REGULARISATION,
-    );
-    bar.finish_and_clear();
+    let t_ri = match direct {
+        Direct::Points(point) => point,
+        Direct::Footprints(mip) => {
+            let bar = progress.phase("fit", n as u64);
+            let visibility = shape.as_ref().map(|s| &s.visibility);
+            let mut t_ri = single(field, &mip, single::Origins::Footprint, visibility, &bar);
+            drop(mip);
+            fit::least_squares(
+                &field.grid,
+                &layout,
+                &mut t_ri,
+                coeffs,
+                fit::FIT_REGULARISATION,
+            );
+            bar.finish_and_clear();
+            t_ri
+        }
+    };
     if !settings.single_scatter {
         for (f, t) in f_ms.iter_mut().zip(&t_ri) {
             *f -= medium.albedo * t;

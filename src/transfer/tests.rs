@@ -170,6 +170,61 @@ fn albedo_zero_scatters_nothing() {
         .any(|v| *v != 0.0));
 }
 
+#[test]
+fn a_medium_that_scatters_most_of_its_light_keeps_the_point_values() {
+    // At albedo ≥ POINT_DIRECT_ALBEDO the stored T_ri is the nodes' point values — the same
+    // rays as a node pass traced on its own — and F_ms is the lattice's scattered light alone,
+    // never negative; below it T_ri is fitted to the footprint means, which differ.
+    let d = load("torus.vdb");
+    let f = DensityField::new(d.clone());
+    let s = settings(4, 6);
+    let coeffs = s.bands * s.bands;
+    // σt 1 at density 1 holds a whole optical depth per voxel: no coarser levels.
+    let sigma_t = 1.0;
+    assert_eq!(super::single::far_field(&d, sigma_t, s.samples).1, 0);
+    let layout = TransferLayout::build(&d, s.scale);
+    let single = SingleSettings {
+        bands: s.bands,
+        samples: s.samples,
+        seed: s.seed,
+        origins: Origins::Node,
+        chord_step: 1.0,
+    };
+    let point = bake_single(
+        &d,
+        &layout,
+        &OpticalDepth::new(&f, sigma_t, true).with_dark_test(),
+        single,
+        None,
+        &indicatif::ProgressBar::hidden(),
+    );
+    let baked = |albedo: f32| {
+        let medium = Medium { sigma_t, albedo };
+        let (t, _) = bake(
+            &mut DensityField::new(d.clone()),
+            medium,
+            &s,
+            &crate::io::progress::Bars { quiet: true },
+        );
+        let (t_ri, f_ms) = t.coefficients().unwrap();
+        (t_ri.to_f32(coeffs).to_vec(), f_ms.to_f32(coeffs).to_vec())
+    };
+    assert!(!s.fits_footprints(Medium {
+        sigma_t,
+        albedo: super::POINT_DIRECT_ALBEDO
+    }));
+    let (t_ri, f_ms) = baked(0.9);
+    assert_eq!(t_ri, point);
+    let least = f_ms
+        .iter()
+        .step_by(coeffs)
+        .fold(f32::INFINITY, |a, &b| a.min(b));
+    assert!(least >= -1e-6, "F_ms's DC reaches {least}");
+    let (fitted, _) = baked(0.5);
+    let apart = fitted.iter().zip(&point).filter(|(a, b)| a != b).count();
+    assert!(apart > point.len() / 2, "only {apart} fitted values differ");
+}
+
 /// Mean of the SH dot product T·E over the voxels above and below the sphere's centre.
 fn upper_lower(t: &[f32], layout: &TransferLayout, env: &[f32], coeffs: usize) -> (f32, f32) {
     let (mut up, mut down, mut nu, mut nd) = (0.0, 0.0, 0, 0);
