@@ -32,7 +32,7 @@ use std::ops::ControlFlow;
 use glam::{DVec3, IVec3, Vec3};
 use indicatif::ProgressBar;
 
-use crate::math::floor::floor_split;
+use crate::math::floor::{ceil, floor_split};
 use crate::math::hash::hash_unit;
 use crate::render::camera::{Camera, STREAM_STEP};
 use crate::render::film::{self, Background, RayResult};
@@ -719,7 +719,7 @@ pub fn march_ray<S: InScatter>(
     let jitter = jitter as f64;
     let step_f32 = step as f32;
     // First k whose t_k reaches `t`: t_entry + (k + ξ)·Δ ≥ t.
-    let k_at = |t: f64| ((t - t_entry) / step - jitter).ceil().max(0.0) as u64;
+    let k_at = |t: f64| ceil((t - t_entry) / step - jitter).max(0) as u64;
     let k_end = k_at(t_exit);
     let entry = (o + d * t_entry).as_vec3();
     let d32 = d.as_vec3();
