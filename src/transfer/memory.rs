@@ -89,13 +89,15 @@ impl MemoryEstimate {
             ),
             false => (one + sets + far, 0),
         };
-        // - the lattice, beside F_ms and, where the point values are the direct light, their
-        //   copy as T_ri (the coarser density then gone), else the coarser density kept for the
-        //   footprint pass: its links, with their places while they are built, and then the
-        //   transport's state, the bricks released.
-        let beside = match footprints {
-            true => one + far,
-            false => 2 * one,
+        // - the lattice, beside F_ms and the coarser density kept for the footprint pass, or,
+        //   where the point values are the direct light, beside them and the lattice's light in
+        //   the bands it carries (widened to F_ms at the end, beside both): its links, with their
+        //   places while they are built, and then the transport's state, the bricks released.
+        let carried = settings.lattice.bands(settings.bands) as u64;
+        let light = n * carried * carried * 4;
+        let (beside, widen) = match footprints {
+            true => (one + far, 0),
+            false => (one + light, 2 * one + light),
         };
         let lattice = match settings.single_scatter {
             true => 0,
@@ -125,7 +127,7 @@ impl MemoryEstimate {
             + visibility
                 .sweep
                 .max(visibility.held + visibility.fit + rows);
-        let peak = single.max(fit).max(lattice).max(shape);
+        let peak = single.max(fit).max(lattice).max(shape).max(widen);
         MemoryEstimate {
             density: field_bytes as u64,
             layout: layout_bytes as u64,

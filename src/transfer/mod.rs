@@ -142,6 +142,17 @@ impl BakeSettings {
     }
 }
 
+/// `light`'s rows of `from`² coefficients as rows of `to`² (`to` ≥ `from`), the bands past `from`
+/// zero.
+fn widen(light: &[f32], from: usize, to: usize) -> Vec<f32> {
+    let (narrow, wide) = (from * from, to * to);
+    let mut out = vec![0.0; light.len() / narrow.max(1) * wide];
+    for (row, values) in out.chunks_exact_mut(wide).zip(light.chunks_exact(narrow)) {
+        row[..narrow].copy_from_slice(values);
+    }
+    out
+}
+
 /// Where a bake's direct light (its stored T_ri) comes from.
 enum Direct {
     /// The footprint pass, fitted; it marches the far field's coarser density, kept for it.
@@ -226,32 +237,45 @@ pub fn bake(
         true => (vec![0.0; n * coeffs], Direct::Footprints(mip)),
         false => {
             let bar = progress.phase("single", n as u64);
-            let mut point = single(field, &mip, single::Origins::Node, None, &bar);
+            let point = single(field, &mip, single::Origins::Node, None, &bar);
             bar.finish_and_clear();
             stats.single_seconds = clock.elapsed().as_secs_f64();
-            // Point values as the direct light need no coarser density past this pass.
-            let direct = match footprints {
-                true => Direct::Footprints(mip),
-                false => {
-                    drop(mip);
-                    Direct::Points(point.clone())
-                }
-            };
 
             let clock = std::time::Instant::now();
             progress.phase("lattice", 0);
             let energy_single = point.iter().step_by(coeffs).map(|&t| t as f64).sum();
-            point.iter_mut().for_each(|p| *p *= medium.albedo);
             let lattice =
                 lattice::Lattice::build(field, &layout, settings.lattice, medium, settings.bands);
             // The transport samples no density: it runs without the bricks, built again once the
             // links are gone.
             field.release_bricks();
-            stats.lattice = Some(lattice.bake_multiple(settings.bands, energy_single, &mut point));
+            let (f_ms, direct) = match footprints {
+                true => {
+                    let mut f_ms = point;
+                    f_ms.iter_mut().for_each(|p| *p *= medium.albedo);
+                    let done = lattice.bake_multiple(settings.bands, energy_single, &mut f_ms);
+                    stats.lattice = Some(done);
+                    (f_ms, Direct::Footprints(mip))
+                }
+                // The point values are T_ri, and F_ms the lattice's light alone: it is gathered
+                // in the bands the lattice carries, beside them, and widened at the end. No
+                // coarser density is needed past the point values' pass.
+                false => {
+                    drop(mip);
+                    let carried = settings.lattice.bands(settings.bands);
+                    let mut light = vec![0.0; n * carried * carried];
+                    let done = lattice.bake_multiple(carried, energy_single, &mut light);
+                    stats.lattice = Some(done);
+                    (
+                        widen(&light, carried, settings.bands),
+                        Direct::Points(point),
+                    )
+                }
+            };
             drop(lattice);
             field.build_bricks();
             stats.lattice_seconds = clock.elapsed().as_secs_f64();
-            (point, direct)
+            (f_ms, direct)
         }
     };
 
@@ -283,14 +307,14 @@ pub fn bake(
                 fit::FIT_REGULARISATION,
             );
             bar.finish_and_clear();
+            if !settings.single_scatter {
+                for (f, t) in f_ms.iter_mut().zip(&t_ri) {
+                    *f -= medium.albedo * t;
+                }
+            }
             t_ri
         }
     };
-    if !settings.single_scatter {
-        for (f, t) in f_ms.iter_mut().zip(&t_ri) {
-            *f -= medium.albedo * t;
-        }
-    }
     stats.single_seconds += clock.elapsed().as_secs_f64();
 
     let transfer = Transfer {
