@@ -1,6 +1,6 @@
 //! `vscatter bake`: read a VDB density, plan the bake (memory estimate and budget), bake the
-//! transfer (T_ri at the nodes, the lattice, then T_ri fitted) and write a `.vtc` cache — with a
-//! progress bar per phase and `--stats`.
+//! transfer (T_ri at the nodes, the lattice, then, where the bake fits footprints, T_ri fitted)
+//! and write a `.vtc` cache — with a progress bar per phase and `--stats`.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
