@@ -308,11 +308,11 @@ def seed_noise(lines):
         print(lines[-1], flush=True)
     lines += [
         "",
-        "Each direction's share of a node's footprint mean is T_ri averaged along one chord of the "
-        "footprint ([model.md](model.md#the-transfer)), so the fall of light along the ray is "
-        "integrated; what varies with the seed is where across the footprint each chord lies and "
-        "the rotation of the direction sets. The multiple-scattering bake's F_ms carries the fit's "
-        "correction, which removes most of it; `--single-scatter` under a studio map shows it as "
+        "The default bake (albedo 0.9) keeps T_ri's point values at the nodes, and what varies "
+        "with the seed there is the rotation of each node's direction set. A `--single-scatter` "
+        "bake fits T_ri to footprint means, each direction's share of which is T_ri averaged along "
+        "one chord of the footprint ([model.md](model.md#the-transfer)); where across the "
+        "footprint each chord lies varies with the seed too, and under a studio map it shows as "
         "transfer-voxel blotches at the default σt.",
     ]
 
