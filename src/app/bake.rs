@@ -116,6 +116,7 @@ pub fn bake_stats_json(stats: &BakeStats) -> serde_json::Value {
         "transfer_voxels": stats.transfer_voxels,
         "transfer_tiles": stats.transfer_tiles,
         "far_field_bytes": stats.far_field_bytes,
+        "fitted": stats.fitted,
         "visibility_seconds": stats.visibility_seconds,
         "visibility_bytes": stats.visibility_bytes,
         "lattice_generations": stats.lattice.map(|l| l.generations),

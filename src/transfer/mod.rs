@@ -176,6 +176,9 @@ pub struct BakeStats {
     /// light ([`shape`]; 0 for a transfer with multiple scattering).
     pub visibility_seconds: f64,
     pub visibility_bytes: u64,
+    /// Whether T_ri was fitted to footprint means (`false`: it holds the point values,
+    /// [`POINT_DIRECT_ALBEDO`]).
+    pub fitted: bool,
 }
 
 /// Bakes the transfer of `field`: layout, T_ri, then (unless single-scatter) F_ms. The field's
@@ -209,6 +212,7 @@ pub fn bake(
     let coeffs = settings.bands * settings.bands;
     let n = layout.len();
     let footprints = settings.fits_footprints(medium);
+    stats.fitted = footprints;
     let clock = std::time::Instant::now();
     // The coarser density lives through the T_ri passes.
     let (near, levels) = single::far_field(&field.grid, medium.sigma_t, settings.samples);

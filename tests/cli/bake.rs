@@ -268,3 +268,26 @@ fn an_output_that_names_the_input_is_refused_and_the_input_kept() {
     assert_eq!([&input, &map].map(|p| std::fs::read(p).unwrap()), originals);
     assert!(!dir.path().join("x.png").exists());
 }
+
+#[test]
+fn stats_say_whether_t_ri_was_fitted() {
+    // From albedo 0.8 up a multiple-scattering bake keeps T_ri's point values; below it, and in
+    // a single-scattering bake, T_ri is fitted to footprint means (docs/method.md, "The bake").
+    let dir = tempfile::tempdir().unwrap();
+    let cloud = fixture("small_cloud.vdb");
+    for (extra, fitted) in [
+        (&[][..], false),
+        (&["--albedo", "0.8"][..], false),
+        (&["--albedo", "0.79"][..], true),
+        (&["--single-scatter"][..], true),
+    ] {
+        let mut args = vec!["bake", cloud.to_str().unwrap(), "-o", "a.vtc", "--stats"];
+        args.extend_from_slice(&["--bands", "4", "--samples", "64", "--quiet"]);
+        args.extend_from_slice(extra);
+        let o = vscatter_in(dir.path(), &args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let stats: serde_json::Value =
+            serde_json::from_slice(o.stdout.trim_ascii()).expect("one JSON line");
+        assert_eq!(stats["fitted"], fitted, "{extra:?}: {stats}");
+    }
+}
