@@ -207,7 +207,7 @@ pub fn bake(
     // point values, and at albedo 1 exactly so (the white furnace). The point values go into F_ms
     // as albedo × point before the lattice adds to it, and the fitted T_ri comes off at the end,
     // so no phase holds the point values beside both F_ms and T_ri. A bake that does not fit
-    // footprints keeps the point values as T_ri, and the same subtraction leaves F_ms the
+    // footprints ([`POINT_DIRECT_ALBEDO`]) keeps the point values as T_ri, and its F_ms is the
     // lattice's scattered light alone.
     let coeffs = settings.bands * settings.bands;
     let n = layout.len();
