@@ -107,6 +107,9 @@ pub struct Header {
     pub samples: usize,
     pub lattice: usize,
     pub single_scatter: bool,
+    /// `--fit-direct` (absent in caches written before the flag: false).
+    #[serde(default)]
+    pub fit_direct: bool,
     pub seed: u64,
     pub source: Source,
     /// The grid baked, and the one `--grid` asked for (`None`: the default choice).
@@ -158,7 +161,11 @@ impl Header {
         h.scale,
         h.samples,
         h.lattice,
-        if h.single_scatter { " (single scattering only)" } else { "" },
+        match (h.single_scatter, h.fit_direct) {
+            (true, _) => " (single scattering only)",
+            (false, true) => " (direct light fitted)",
+            (false, false) => "",
+        },
         h.seed,
         h.voxel_scale,
         h.translation,
@@ -191,6 +198,7 @@ impl Header {
             samples: self.samples,
             lattice,
             single_scatter: self.single_scatter,
+            fit_direct: self.fit_direct,
             seed: self.seed,
         })
     }
@@ -257,6 +265,7 @@ pub fn header(
         samples: settings.samples,
         lattice: settings.lattice.directions(),
         single_scatter: settings.single_scatter,
+        fit_direct: settings.fit_direct,
         seed: settings.seed,
         source: origin.source,
         grid: origin.grid,
@@ -896,6 +905,7 @@ mod tests {
             samples: 64,
             lattice: LatticeKind::All,
             single_scatter: false,
+            fit_direct: false,
             seed: 7,
         }
     }

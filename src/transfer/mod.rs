@@ -117,6 +117,9 @@ pub struct BakeSettings {
     pub samples: usize,
     pub lattice: lattice::LatticeKind,
     pub single_scatter: bool,
+    /// Fit T_ri to footprint means at any albedo (`--fit-direct`): the direct and indirect
+    /// layers apart come closer to the path tracer's, for twice the T_ri work.
+    pub fit_direct: bool,
     pub seed: u64,
 }
 
@@ -136,9 +139,9 @@ pub const POINT_DIRECT_ALBEDO: f32 = 0.8;
 impl BakeSettings {
     /// Whether a bake of `medium` traces T_ri over the footprints and fits it
     /// ([`POINT_DIRECT_ALBEDO`]): a `--single-scatter` bake always does, its image is all direct
-    /// light.
+    /// light, and so does one asked to (`fit_direct`).
     pub fn fits_footprints(&self, medium: Medium) -> bool {
-        self.single_scatter || medium.albedo < POINT_DIRECT_ALBEDO
+        self.single_scatter || self.fit_direct || medium.albedo < POINT_DIRECT_ALBEDO
     }
 }
 

@@ -26,6 +26,7 @@ fn settings(bands: usize, scale: i32) -> BakeSettings {
         samples: 256,
         lattice: LatticeKind::All,
         single_scatter: false,
+        fit_direct: false,
         seed: 1,
     }
 }

@@ -271,8 +271,9 @@ fn an_output_that_names_the_input_is_refused_and_the_input_kept() {
 
 #[test]
 fn stats_say_whether_t_ri_was_fitted() {
-    // From albedo 0.8 up a multiple-scattering bake keeps T_ri's point values; below it, and in
-    // a single-scattering bake, T_ri is fitted to footprint means (docs/method.md, "The bake").
+    // From albedo 0.8 up a multiple-scattering bake keeps T_ri's point values; below it, in a
+    // single-scattering bake and with `--fit-direct`, T_ri is fitted to footprint means
+    // (docs/method.md, "The bake").
     let dir = tempfile::tempdir().unwrap();
     let cloud = fixture("small_cloud.vdb");
     for (extra, fitted) in [
@@ -280,6 +281,7 @@ fn stats_say_whether_t_ri_was_fitted() {
         (&["--albedo", "0.8"][..], false),
         (&["--albedo", "0.79"][..], true),
         (&["--single-scatter"][..], true),
+        (&["--fit-direct"][..], true),
     ] {
         let mut args = vec!["bake", cloud.to_str().unwrap(), "-o", "a.vtc", "--stats"];
         args.extend_from_slice(&["--bands", "4", "--samples", "64", "--quiet"]);

@@ -62,9 +62,10 @@ fn pathtrace_writes_the_same_layers_on_any_thread_count() {
 fn flags_that_mean_nothing_to_the_method_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let input = fixture("small_cloud.vdb");
-    let cases: [(&str, &[&str], &str); 5] = [
+    let cases: [(&str, &[&str], &str); 6] = [
         ("transfer", &["--max-bounces", "2"], "--max-bounces"),
         ("pathtrace", &["--single-scatter"], "--max-bounces 1"),
+        ("pathtrace", &["--fit-direct"], "--fit-direct"),
         ("pathtrace", &["--cache", "c.vtc"], "--cache"),
         ("pathtrace", &["--max-bounces", "0"], "--max-bounces 0"),
         ("pathtrace", &["--spp", "0"], "--spp"),
