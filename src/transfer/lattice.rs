@@ -122,7 +122,7 @@ use crate::volume::DensityField;
 /// is 0.26 % off.
 pub const CONVERGENCE: f64 = 3e-3;
 /// The most SH bands a lattice transports ([`LatticeKind::bands`]); F_ms's higher coefficients
-/// are the fit's correction alone. D beams per node carry about D angular degrees of freedom,
+/// are the fit's correction alone where T_ri is fitted, and zero where it holds point values. D beams per node carry about D angular degrees of freedom,
 /// and light that has scattered once has lost the rest: past band 3 the lattice's fluence is
 /// the beams' aliasing of the environment's detail, not its multiple scattering. Measured against
 /// the path tracer (256×144, albedo 0.9, `docs/accuracy.md`, before the band gains of
@@ -1299,6 +1299,11 @@ impl Lattice {
             bands,
             convergence: CONVERGENCE,
         }
+    }
+
+    /// The SH bands it transports ([`LatticeKind::bands`]).
+    pub fn bands(&self) -> usize {
+        self.bands
     }
 
     /// Adds F_ms for every transfer voxel to `f_ms` (`layout.len() × bands²`), the coefficients of

@@ -269,7 +269,7 @@ pub fn bake(
                 // coarser density is needed past the point values' pass.
                 false => {
                     drop(mip);
-                    let carried = settings.lattice.bands(settings.bands);
+                    let carried = lattice.bands();
                     let mut light = vec![0.0; n * carried * carried];
                     let done = lattice.bake_multiple(carried, energy_single, &mut light);
                     stats.lattice = Some(done);
