@@ -618,7 +618,7 @@ fn estimate(
         layout_bytes,
         voxels,
         settings,
-        settings.fits_footprints(medium),
+        settings.fits_footprints(&field.grid, medium),
         far,
         reflecting,
         rayon::current_num_threads(),

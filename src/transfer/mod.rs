@@ -133,15 +133,28 @@ pub struct BakeSettings {
 /// 0.48 and 0.3–1.7 points closer in thick cells, at 0.8 0.2–0.3 points further and 0.4–3.1
 /// closer, at 0.7 0.4–0.7 further and 0.2–3.6 closer, at 0.5 1.0–1.7 further and mixed in thick
 /// cells (+2.3 to −3.1). Without the footprint pass T_ri costs half as much and two bake seeds
-/// are half as far apart (its noise is what they differ by).
+/// are half as far apart (its noise is what they differ by). Where cells are thin the fit stays
+/// ([`POINT_DIRECT_CELL_DEPTH`]).
 pub const POINT_DIRECT_ALBEDO: f32 = 0.8;
 
+/// The mean optical depth of a transfer voxel ([`cell_optical_depth`]) from which a bake at
+/// albedo ≥ [`POINT_DIRECT_ALBEDO`] keeps the point values. Below it the interpolation between a
+/// node in the empty apron and one inside overshoots more than the fit errs, and the fit is
+/// closer: against the path tracer (256×144, studio.exr, albedo 0.9, docs/accuracy.md) the fit
+/// is 0.02–0.15 point closer at 0.24 and 0.48 optical depths per transfer voxel, the point
+/// values 0.06–0.08 point closer at 0.96 and 0.3–1.7 closer beyond. 0.7 lies between the two
+/// measured densities, near their geometric mean.
+pub const POINT_DIRECT_CELL_DEPTH: f64 = 0.7;
+
 impl BakeSettings {
-    /// Whether a bake of `medium` traces T_ri over the footprints and fits it
-    /// ([`POINT_DIRECT_ALBEDO`]): a `--single-scatter` bake always does, its image is all direct
-    /// light, and so does one asked to (`fit_direct`).
-    pub fn fits_footprints(&self, medium: Medium) -> bool {
-        self.single_scatter || self.fit_direct || medium.albedo < POINT_DIRECT_ALBEDO
+    /// Whether a bake of `medium` in `density` traces T_ri over the footprints and fits it
+    /// ([`POINT_DIRECT_ALBEDO`], [`POINT_DIRECT_CELL_DEPTH`]): a `--single-scatter` bake always
+    /// does, its image is all direct light, and so does one asked to (`fit_direct`).
+    pub fn fits_footprints(&self, density: &SparseGrid, medium: Medium) -> bool {
+        self.single_scatter
+            || self.fit_direct
+            || medium.albedo < POINT_DIRECT_ALBEDO
+            || cell_optical_depth(density, medium.sigma_t, self.scale) < POINT_DIRECT_CELL_DEPTH
     }
 }
 
@@ -214,7 +227,7 @@ pub fn bake(
     // lattice's scattered light alone.
     let coeffs = settings.bands * settings.bands;
     let n = layout.len();
-    let footprints = settings.fits_footprints(medium);
+    let footprints = settings.fits_footprints(&field.grid, medium);
     stats.fitted = footprints;
     let clock = std::time::Instant::now();
     // The coarser density lives through the T_ri passes.
@@ -348,13 +361,7 @@ pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 /// The warning for a transfer whose voxels are too thick to resolve where light enters (see
 /// [`MAX_RESOLVED_CELL_DEPTH`]), naming a `--sigma-t` that clears it and the other flag that helps.
 pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> Option<String> {
-    let stats = density.value_stats()?;
-    let active = density.active_voxels();
-    if active == 0 || stats.sum <= 0.0 {
-        return None;
-    }
-    let mean = stats.sum / active as f64;
-    let voxel = density.transform.voxel_size().min_element();
+    let (mean, voxel) = mean_density(density)?;
     let k = scale as f64;
     let depth = cell_depth(medium.sigma_t, k, voxel, mean);
     (depth > MAX_RESOLVED_CELL_DEPTH).then(|| {
@@ -367,6 +374,25 @@ pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> O
             medium.sigma_t,
             clearing_sigma_t(k, voxel, mean),
         )
+    })
+}
+
+/// The mean optical depth of a transfer voxel, σt × K × voxel size × mean density; 0 where the
+/// density holds nothing.
+pub fn cell_optical_depth(density: &SparseGrid, sigma_t: f32, scale: i32) -> f64 {
+    mean_density(density).map_or(0.0, |(mean, voxel)| {
+        cell_depth(sigma_t, scale as f64, voxel, mean)
+    })
+}
+
+/// The density's mean over its active voxels and its (smallest) voxel size; `None` where it
+/// holds no positive density.
+fn mean_density(density: &SparseGrid) -> Option<(f64, f64)> {
+    let stats = density.value_stats()?;
+    let active = density.active_voxels();
+    (active > 0 && stats.sum > 0.0).then(|| {
+        let voxel = density.transform.voxel_size().min_element();
+        (stats.sum / active as f64, voxel)
     })
 }
 

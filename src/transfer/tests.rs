@@ -210,10 +210,13 @@ fn a_medium_that_scatters_most_of_its_light_keeps_the_point_values() {
         let (t_ri, f_ms) = t.coefficients().unwrap();
         (t_ri.to_f32(coeffs).to_vec(), f_ms.to_f32(coeffs).to_vec())
     };
-    assert!(!s.fits_footprints(Medium {
-        sigma_t,
-        albedo: super::POINT_DIRECT_ALBEDO
-    }));
+    let medium = |albedo, sigma_t| Medium { sigma_t, albedo };
+    assert!(!s.fits_footprints(&d, medium(super::POINT_DIRECT_ALBEDO, sigma_t)));
+    // Where a transfer voxel is thin the fit stays, at any albedo.
+    let depth = super::cell_optical_depth(&d, sigma_t, s.scale);
+    let thin = sigma_t * (0.99 * super::POINT_DIRECT_CELL_DEPTH / depth) as f32;
+    assert!(s.fits_footprints(&d, medium(0.9, thin)));
+    assert!(!s.fits_footprints(&d, medium(0.9, 1.02 * thin)));
     let (t_ri, f_ms) = baked(0.9);
     assert_eq!(t_ri, point);
     let least = f_ms

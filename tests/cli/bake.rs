@@ -271,17 +271,21 @@ fn an_output_that_names_the_input_is_refused_and_the_input_kept() {
 
 #[test]
 fn stats_say_whether_t_ri_was_fitted() {
-    // From albedo 0.8 up a multiple-scattering bake keeps T_ri's point values; below it, in a
+    // From albedo 0.8 up a multiple-scattering bake of optically thick transfer voxels keeps
+    // T_ri's point values; below it, where a transfer voxel holds under 0.7 optical depths, in a
     // single-scattering bake and with `--fit-direct`, T_ri is fitted to footprint means
-    // (docs/method.md, "The bake").
+    // (docs/method.md, "The bake"). The small cloud's transfer voxel holds σt × 6 × 0.05 × 0.898
+    // optical depths: 1.35 at σt 5, 0.54 at σt 2, 0.75 at σt 2.8.
     let dir = tempfile::tempdir().unwrap();
     let cloud = fixture("small_cloud.vdb");
     for (extra, fitted) in [
-        (&[][..], false),
-        (&["--albedo", "0.8"][..], false),
-        (&["--albedo", "0.79"][..], true),
-        (&["--single-scatter"][..], true),
-        (&["--fit-direct"][..], true),
+        (&["--sigma-t", "5"][..], false),
+        (&["--sigma-t", "5", "--albedo", "0.8"][..], false),
+        (&["--sigma-t", "5", "--albedo", "0.79"][..], true),
+        (&["--sigma-t", "2"][..], true),
+        (&["--sigma-t", "2.8"][..], false),
+        (&["--sigma-t", "5", "--single-scatter"][..], true),
+        (&["--sigma-t", "5", "--fit-direct"][..], true),
     ] {
         let mut args = vec!["bake", cloud.to_str().unwrap(), "-o", "a.vtc", "--stats"];
         args.extend_from_slice(&["--bands", "4", "--samples", "64", "--quiet"]);
