@@ -217,6 +217,16 @@ fn a_medium_that_scatters_most_of_its_light_keeps_the_point_values() {
     let thin = sigma_t * (0.99 * super::POINT_DIRECT_CELL_DEPTH / depth) as f32;
     assert!(s.fits_footprints(&d, medium(0.9, thin)));
     assert!(!s.fits_footprints(&d, medium(0.9, 1.02 * thin)));
+    // There the footprint pass, whose light reaches the image as the share 1 − albedo, traces a
+    // share of the directions; where the fit is asked for or the albedo is low, all of them.
+    let share = s.samples / super::THIN_FOOTPRINT_SHARE;
+    assert_eq!(s.footprint_samples(medium(0.9, thin)), share);
+    assert_eq!(s.footprint_samples(medium(0.5, thin)), s.samples);
+    let asked = BakeSettings {
+        fit_direct: true,
+        ..s
+    };
+    assert_eq!(asked.footprint_samples(medium(0.9, thin)), s.samples);
     let (t_ri, f_ms) = baked(0.9);
     assert_eq!(t_ri, point);
     let least = f_ms
