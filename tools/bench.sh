@@ -438,7 +438,11 @@ section_scale() {
             -v c="$coeffs" 'BEGIN{ printf "%.0f", a * 4 + t * c * 4 * 2 }')
         peak=$(j "scale_bake_new_$name" peak_memory_bytes)
         local r; r=$(ratio "$peak" "$data")
-        echo "   $name bake peak / (density f32 + transfer f32, $(mib "$data") MiB): $r ($(verdict "$r" "<=" 1.5), target <= 1.5)"
+        # Issue 15's 1.5× is for the half-size cloud; the quarter's peak is reported beside it.
+        case $name in
+            cloud_half) echo "   $name bake peak / (density f32 + transfer f32, $(mib "$data") MiB): $r ($(verdict "$r" "<=" 1.5), target <= 1.5)" ;;
+            *) echo "   $name bake peak / (density f32 + transfer f32, $(mib "$data") MiB): $r (reported; the target is the half-size cloud's)" ;;
+        esac
         ls -l "$f" "$o/${name}_new.vtc" | awk '{ printf "   %s: %.1f MB\n", $NF, $5 / 1e6 }'
     done
 }
