@@ -332,8 +332,11 @@ impl Scene {
             return 0;
         }
         self.planned_sun_layout(bake).map_or(0, |layout| {
-            let reflecting =
-                DensityMeans::new(&self.field.grid).reflecting_share(self.medium.sigma_t, layout.k);
+            let reflecting = DensityMeans::new(&self.field.grid).reflecting_share(
+                self.medium.sigma_t,
+                layout.k,
+                sunlight::SUN_LATTICE,
+            );
             let directions = sunlight::SUN_LATTICE.directions();
             crate::transfer::memory::sun_solve_bytes(layout.len(), directions, reflecting)
         })

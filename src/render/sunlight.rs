@@ -71,7 +71,7 @@ pub fn sun_layout(density: &SparseGrid, transfer: &TransferLayout, sigma_t: f32)
     let k = transfer.k;
     let means = lattice::DensityMeans::new(density);
     let solve_bytes = |nodes: u64, fine: i32| {
-        let reflecting = means.reflecting_share(sigma_t, fine);
+        let reflecting = means.reflecting_share(sigma_t, fine, SUN_LATTICE);
         sun_solve_bytes(nodes as usize, SUN_LATTICE.directions(), reflecting)
     };
     if k > VOXEL_SUN_K && solve_bytes(density.active_voxels(), VOXEL_SUN_K) <= MAX_SUN_SOLVE_BYTES {

@@ -39,7 +39,8 @@
 //!   as shares it was not: driven from the boundary, the cloud's interior came out 16 % / 25 %
 //!   low on average at σt 1 / 2.
 //! * **Thick cells reflect at their faces.** A cell whose line j is optically thick,
-//!   t_j = σ̄_j·h > 1 ([`REFLECT_ABOVE_DEPTH`]), sends the share λ_j = (√t_j − 1)/(√t_j + 1) of
+//!   t_j = σ̄_j·h > t₀ ([`LatticeKind::reflect_depth`]: 0.75 on the 26 directions, 1 on the
+//!   others), sends the share λ_j = (√(t_j/t₀) − 1)/(√(t_j/t₀) + 1) of
 //!   the flux entering that line straight back along −d_j (times α, as a scattering: it leaves
 //!   when −d_j is next swept), and only 1 − λ_j enters, collides and feeds the emission, whose
 //!   shares become e_j ∝ (1 − λ_j)·w_j·σ̄_j. Without it, a cell many optical depths thick still
@@ -47,12 +48,14 @@
 //!   such cells exchange light as opaque emitters, πΔc per unit area, where a resolved medium
 //!   carries the diffusion flux (4π/3)·Δc/t: clouds at the default density came out flat, too
 //!   dark on the lit side and too bright behind (a 30-voxel slab at σt 1: 2.1× the transmitted
-//!   light). Between two reflecting cells the net exchange is scaled by (1 − λ)/(1 + λ) = 1/√t,
-//!   which matched exact slab solutions from 1.8 to 12 optical depths per cell to about 10 %
-//!   (`a_thick_slab_conducts_light_as_diffusion_does`). A uniform field stays an exact
+//!   light). Between two reflecting cells the net exchange is scaled by (1 − λ)/(1 + λ) =
+//!   √(t₀/t), which matched exact slab solutions from 1.8 to 12 optical depths per cell to about
+//!   10 % at t₀ = 1, and the 6-optical-depth slab of
+//!   `a_thick_slab_conducts_light_as_diffusion_does` to 0.2 % on the 26 directions at t₀ = 0.75
+//!   (6.4 % at 1). A uniform field stays an exact
 //!   equilibrium (what a line reflects, its opposite line sends back), energy is conserved at
 //!   α = 1, and the node reads the entering light times 1/(1 − λ_j), so a uniform field still
-//!   reads back exactly. Below one optical depth per cell edge nothing changes.
+//!   reads back exactly. Below t₀ optical depths per cell edge nothing changes.
 //! * **Self-scattering, summed.** Of a cell's own emission the share s = Σ_j e_j·(1 − ε_j)
 //!   collides in the cell itself, and α·s of that is emitted again: a geometric series summed in
 //!   closed form by emitting Q/(1 − α·s) and not feeding those self-collisions back. Thick cells
@@ -240,9 +243,19 @@ const NO_LINK: u32 = u32::MAX;
 /// Longest segment marched, in sub-steps: a (2, 2, 1) link at K = 64 is 64·3 / 0.5 = 384 steps.
 const MAX_SEGMENT_STEPS: usize = 384;
 /// A line through a cell reflects part of the light entering it once its optical depth per cell
-/// edge, t = σ̄·h, exceeds this (module doc, "Thick cells"); below, nothing is reflected and the
-/// lattice is the plain transport.
-pub const REFLECT_ABOVE_DEPTH: f64 = 1.0;
+/// edge, t = σ̄·h, exceeds its lattice's t₀ ([`LatticeKind::reflect_depth`], module doc, "Thick
+/// cells"); below, nothing is reflected and the lattice is the plain transport. This t₀ is the
+/// one whose slab conducts as the exact one does: the slab of
+/// `a_thick_slab_conducts_light_as_diffusion_does` (6 optical depths per cell edge) falls with
+/// the exact slope × 0.936 on the 26 directions at t₀ = 1 and × 0.998 at 0.75; on 18, × 0.986 at
+/// 1 and × 1.053 at 0.75; on 6, × 1.235 at 1. Against the path tracer (256×144, studio.exr,
+/// docs/accuracy.md), the 26 directions at 0.75 bring eight rows 0.03–0.70 point closer (the
+/// torus at 1.92 optical depths per transfer voxel 11.53 → 11.01 %) and none further.
+const REFLECT_DEPTH_26: f64 = 0.75;
+/// t₀ of the other lattices: 18 directions match the exact slab at 1 (above); the suns' set was
+/// checked at 1 against the path tracer's energy (docs/accuracy.md, the energy check); 6
+/// directions, a coarse option, conduct too well at any t₀ near 1.
+const REFLECT_DEPTH: f64 = 1.0;
 /// Cap on α·s, the share of a cell's emission it scatters again itself: s < 1 always, but at
 /// α = 1 in an extremely thick cell 1/(1 − α·s) would lose all precision.
 const MAX_SELF_GAIN: f64 = 0.999_999;
@@ -265,6 +278,14 @@ pub enum LatticeKind {
 impl LatticeKind {
     pub fn directions(self) -> usize {
         Directions::new(self).len()
+    }
+
+    /// t₀: the optical depth per cell edge above which this lattice's thick lines reflect.
+    pub fn reflect_depth(self) -> f64 {
+        match self {
+            LatticeKind::All => REFLECT_DEPTH_26,
+            LatticeKind::Faces | LatticeKind::FacesEdges | LatticeKind::FacesSkew => REFLECT_DEPTH,
+        }
     }
 
     /// The SH bands this lattice transports for a bake of `bands`: at most [`LATTICE_BANDS`], and
@@ -312,6 +333,8 @@ pub struct Directions {
     pub weights: Vec<f32>,
     /// Index of −d_j.
     pub opposite: Vec<usize>,
+    /// t₀ of thick lines' reflection ([`LatticeKind::reflect_depth`]).
+    pub reflect_depth: f64,
 }
 
 impl Directions {
@@ -348,6 +371,7 @@ impl Directions {
             offsets,
             weights,
             opposite,
+            reflect_depth: kind.reflect_depth(),
         }
     }
 
@@ -678,7 +702,10 @@ fn cell_links(
     let segments = &segments[..d];
     let mut lambda = [0f64; MAX_DIRECTIONS];
     for ((lam, seg), off) in lambda.iter_mut().zip(segments).zip(&dirs.offsets) {
-        *lam = reflection(seg.tau as f64 / off.as_vec3().length() as f64);
+        *lam = reflection(
+            seg.tau as f64 / off.as_vec3().length() as f64,
+            dirs.reflect_depth,
+        );
     }
     // Emission shares e_j ∝ (1 − λ_j)·w_j·σ̄_j: what enters line j and collides there; an empty
     // cell scatters nothing, any shares will do.
@@ -716,14 +743,14 @@ fn cell_links(
     (links, lambda.map(|l| l as f32))
 }
 
-/// λ(t) = (√t − 1)/(√t + 1) above [`REFLECT_ABOVE_DEPTH`], else 0: the share of the light
-/// entering a line of optical depth t per cell edge that the cell sends back (module doc, "Thick
-/// cells"). Between two such cells it scales the net exchange by (1 − λ)/(1 + λ) = 1/√t.
-fn reflection(t: f64) -> f64 {
-    if t <= REFLECT_ABOVE_DEPTH {
+/// λ = (√(t/t₀) − 1)/(√(t/t₀) + 1) above t₀, else 0: the share of the light entering a line of
+/// optical depth t per cell edge that the cell sends back (module doc, "Thick cells"). Between
+/// two such cells it scales the net exchange by (1 − λ)/(1 + λ) = √(t₀/t).
+fn reflection(t: f64, t0: f64) -> f64 {
+    if t <= t0 {
         return 0.0;
     }
-    let r = (t / REFLECT_ABOVE_DEPTH).sqrt();
+    let r = (t / t0).sqrt();
     (r - 1.0) / (r + 1.0)
 }
 
@@ -759,12 +786,13 @@ impl DensityMeans {
         }
     }
 
-    /// The active voxels of the leaves and tiles whose mean is more than one optical depth per
-    /// cell edge at `sigma_t` and scale `k`, of all active voxels (a cell's lines average the
-    /// density as a leaf's mean does).
-    pub fn reflecting_share(&self, sigma_t: f32, k: i32) -> f64 {
+    /// The active voxels of the leaves and tiles whose mean is more than `kind`'s t₀ optical
+    /// depths per cell edge at `sigma_t` and scale `k`, of all active voxels (a cell's lines
+    /// average the density as a leaf's mean does).
+    pub fn reflecting_share(&self, sigma_t: f32, k: i32, kind: LatticeKind) -> f64 {
         let edge = self.voxel * k as f64;
-        let thick = |mean: f32| sigma_t as f64 * mean as f64 * edge > REFLECT_ABOVE_DEPTH;
+        let t0 = kind.reflect_depth();
+        let thick = |mean: f32| sigma_t as f64 * mean as f64 * edge > t0;
         let all: f64 = self.means.iter().map(|m| m.1).sum();
         let reflecting: f64 = self.means.iter().filter(|m| thick(m.0)).map(|m| m.1).sum();
         if all > 0.0 {

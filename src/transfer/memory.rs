@@ -318,8 +318,11 @@ impl BakePlan {
         let sigma_t = medium.sigma_t;
         let levels = single::far_field(&field.grid, sigma_t, settings.samples).1;
         let far = far_field_bytes(field, levels);
-        let reflecting =
-            lattice::DensityMeans::new(&field.grid).reflecting_share(sigma_t, settings.scale);
+        let reflecting = lattice::DensityMeans::new(&field.grid).reflecting_share(
+            sigma_t,
+            settings.scale,
+            settings.lattice,
+        );
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
@@ -391,9 +394,9 @@ impl BakePlan {
             ..s
         };
         let means = lattice::DensityMeans::new(&field.grid);
-        let reflecting = |k| means.reflecting_share(self.medium.sigma_t, k);
+        let reflecting = |k, kind| means.reflecting_share(self.medium.sigma_t, k, kind);
         let need = |settings: &BakeSettings, voxels: usize| {
-            let r = reflecting(settings.scale);
+            let r = reflecting(settings.scale, settings.lattice);
             estimate(
                 field,
                 layout_bytes,
@@ -418,7 +421,7 @@ impl BakePlan {
                 &at_k,
                 self.medium,
                 self.far_bytes,
-                reflecting(k),
+                reflecting(k, s.lattice),
             )
             .total();
             (total <= limit).then_some((k, total))

@@ -173,13 +173,15 @@ fn a_thick_slab_conducts_light_as_diffusion_does() {
     // integral equation of isotropic scattering in a slab (the E1 kernel, 100 points per voxel):
     // a slope of 0.0770 per voxel. Without the thick cells' reflection the lattice's cells
     // exchange light as opaque uniform emitters and conduct it far too well: the slope comes out
-    // 0.051 (−34 %), the slab's interior too flat, too little light kept near the lit face.
+    // 0.051 (−34 %), the slab's interior too flat, too little light kept near the lit face. With
+    // reflection above one optical depth per cell edge it is 0.0721 (−6.4 %), above the 26
+    // directions' t₀ of 0.75 0.0768 (−0.2 %).
     let reference = 0.0770f32;
     let column = slab_fluence(1.0);
     let at = |y: i32| column.iter().find(|c| c.0 == y).map(|c| c.1).unwrap();
     let slope = (at(48) - at(12)) / 36.0;
     assert!(
-        (slope / reference - 1.0).abs() < 0.1,
+        (slope / reference - 1.0).abs() < 0.03,
         "slope {slope} against {reference}"
     );
 }
