@@ -125,8 +125,9 @@ use crate::volume::DensityField;
 /// is 0.26 % off.
 pub const CONVERGENCE: f64 = 3e-3;
 /// The most SH bands a lattice transports ([`LatticeKind::bands`]); F_ms's higher coefficients
-/// are the fit's correction alone where T_ri is fitted, and zero where it holds point values. D beams per node carry about D angular degrees of freedom,
-/// and light that has scattered once has lost the rest: past band 3 the lattice's fluence is
+/// are the fit's correction alone where T_ri is fitted, and zero where it holds point values. D
+/// beams per node carry about D angular degrees of freedom, and light that has scattered once
+/// has lost the rest: past band 3 the lattice's fluence is
 /// the beams' aliasing of the environment's detail, not its multiple scattering. Measured against
 /// the path tracer (256×144, albedo 0.9, `docs/accuracy.md`, before the band gains of
 /// [`inflow`]), transporting 2, 3, 4, 5, 6 or all 10 bands: every row is as close or closer at 4
