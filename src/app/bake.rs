@@ -117,6 +117,7 @@ pub fn bake_stats_json(stats: &BakeStats) -> serde_json::Value {
         "transfer_tiles": stats.transfer_tiles,
         "far_field_bytes": stats.far_field_bytes,
         "fitted": stats.fitted,
+        "lattice_scale": stats.lattice_scale,
         "visibility_seconds": stats.visibility_seconds,
         "visibility_bytes": stats.visibility_bytes,
         "lattice_generations": stats.lattice.map(|l| l.generations),

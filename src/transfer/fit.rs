@@ -432,6 +432,87 @@ pub fn fitted_visibility(
     means
 }
 
+/// Least-squares node values of a field given at the nodes of a finer layout `fine`
+/// (`fine.len() × coeffs` values, read trilinearly between them as the renderer would read
+/// them), fitted as T_ri is: each node's footprint mean of the field over ρ·w_n, exact from the
+/// quadrature's points, then [`least_squares`] with [`FIT_REGULARISATION`]. The multiple
+/// scattering solved on cells finer than the transfer's comes back to the transfer's nodes this
+/// way, so that their interpolant matches it where the density is ([`crate::transfer::bake`]).
+///
+/// A node's mean is Σ_b G_b·F_b over the fine nodes b around it, G_b = Σ_p ρ·w_n·u_b(p) with u_b
+/// the fine nodes' trilinear weights: gathered once per point for all coefficients.
+pub fn fitted_from_finer(
+    density: &SparseGrid,
+    layout: &TransferLayout,
+    fine: &TransferLayout,
+    values: &[f32],
+    coeffs: usize,
+) -> Vec<f32> {
+    let quadrature = Quadrature::new(layout.k);
+    let (k, kf) = (layout.k, fine.k);
+    let mut means: Vec<f32> = layout
+        .voxels()
+        .par_iter()
+        .flat_map_iter(|&v| {
+            let mut mean = vec![0f32; coeffs];
+            let (points, cumulative) = quadrature.footprint(density, v);
+            let mass = cumulative.last().copied().unwrap_or(0.0);
+            if mass <= 0.0 {
+                return mean.into_iter();
+            }
+            // Per axis and point, the fine cell below it (from the box's low corner) and the
+            // fraction across it: point j lies at K·v + offset_j, fine node b at K_f·b.
+            let place = |a: usize, j: usize| {
+                let x = (v[a] * k) as f64 + quadrature.axis[j].offset as f64;
+                let q = x / kf as f64;
+                (q.floor() as i32, q - q.floor())
+            };
+            let low = IVec3::from_array(std::array::from_fn(|a| place(a, 0).0));
+            let high = IVec3::from_array(std::array::from_fn(|a| place(a, quadrature.n - 1).0 + 1));
+            let dim = (high - low + 1).as_uvec3();
+            let at = |b: IVec3| {
+                let l = (b - low).as_uvec3();
+                ((l.x * dim.y + l.y) * dim.z + l.z) as usize
+            };
+            let axes: [Vec<(i32, f64)>; 3] =
+                std::array::from_fn(|a| (0..quadrature.n).map(|j| place(a, j)).collect());
+            let mut gathered = vec![0f64; (dim.x * dim.y * dim.z) as usize];
+            let mut previous = 0.0;
+            for (&j, c) in points.iter().zip(&cumulative) {
+                let weight = c - previous; // ρ·w_n of this point
+                previous = *c;
+                let [x, y, z] = [0, 1, 2].map(|a| axes[a][j[a] as usize]);
+                let cell = IVec3::new(x.0, y.0, z.0);
+                for n in 0..8 {
+                    let corner = crate::volume::grid::corner(n);
+                    let w = |bit: i32, f: f64| if bit == 1 { f } else { 1.0 - f };
+                    let u = w(corner.x, x.1) * w(corner.y, y.1) * w(corner.z, z.1);
+                    gathered[at(cell + corner)] += weight * u;
+                }
+            }
+            let mut sum = vec![0f64; coeffs];
+            for x in low.x..=high.x {
+                for y in low.y..=high.y {
+                    for z in low.z..=high.z {
+                        let b = IVec3::new(x, y, z);
+                        let g = gathered[at(b)];
+                        if let (true, Some(slot)) = (g > 0.0, fine.slot(b)) {
+                            let f = &values[slot * coeffs..][..coeffs];
+                            sum.iter_mut().zip(f).for_each(|(s, f)| *s += g * *f as f64);
+                        }
+                    }
+                }
+            }
+            mean.iter_mut()
+                .zip(&sum)
+                .for_each(|(m, s)| *m = (s / mass) as f32);
+            mean.into_iter()
+        })
+        .collect();
+    least_squares(density, layout, &mut means, coeffs, FIT_REGULARISATION);
+    means
+}
+
 /// Least-squares node values from the footprint means `means` (`layout.len() × coeffs`, t̄_n per
 /// node; nodes without density keep theirs), in place, pulled toward the means by `lambda`
 /// (λ of [`FIT_REGULARISATION`]; 0: plain least squares).
@@ -592,6 +673,48 @@ mod tests {
             if *mass >= 0.01 * full {
                 let want = f((*v * k).as_vec3());
                 assert!((m - want).abs() < 5e-4, "{v}: {m} vs {want}");
+                checked += 1;
+            }
+        }
+        assert!(checked >= 27, "{checked} nodes checked");
+    }
+
+    #[test]
+    fn a_field_on_finer_nodes_comes_back_to_the_transfers_nodes() {
+        // A linear field f given at the nodes of cells of 2 is trilinear between them, so each
+        // node of cells of 4 two nodes inside a uniform 32³ block (its neighbours' footprints
+        // full too) reads f at its own point as its footprint mean (the tent is symmetric about
+        // it), and the fit, which can hold f exactly, keeps it there to 0.1 % (the boundary's
+        // partial footprints pull a little through the fit's coupling): per coefficient, f and
+        // 2f + 1.
+        let density = crate::volume::grid::block_box(IVec3::splat(32));
+        let (layout, fine) = (
+            TransferLayout::build(&density, 4),
+            TransferLayout::build(&density, 2),
+        );
+        let f = |p: Vec3| 0.3 + 0.02 * p.x - 0.01 * p.y + 0.015 * p.z;
+        let values: Vec<f32> = fine
+            .voxels()
+            .iter()
+            .flat_map(|b| {
+                let v = f((*b * fine.k).as_vec3());
+                [v, 2.0 * v + 1.0]
+            })
+            .collect();
+        let fitted = fitted_from_finer(&density, &layout, &fine, &values, 2);
+        let mut checked = 0;
+        for (v, got) in layout.voxels().iter().zip(fitted.chunks_exact(2)) {
+            // The node's footprint and its neighbours' wholly inside the block.
+            let inside =
+                (*v * 4 - 8).cmpge(IVec3::ZERO).all() && (*v * 4 + 8).cmple(IVec3::splat(31)).all();
+            if inside {
+                let want = f((*v * 4).as_vec3());
+                assert!((got[0] - want).abs() < 5e-4, "{v}: {} vs {want}", got[0]);
+                assert!(
+                    (got[1] - (2.0 * want + 1.0)).abs() < 1e-3,
+                    "{v}: {}",
+                    got[1]
+                );
                 checked += 1;
             }
         }

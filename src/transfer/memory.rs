@@ -4,12 +4,12 @@
 
 use indicatif::HumanBytes as human;
 
-use super::{lattice, lattice::LatticeKind, single, BakeSettings, Medium, TransferLayout};
+use super::{lattice, lattice::LatticeKind, refine, single, BakeSettings, Medium, TransferLayout};
 use crate::error::{Error, Result};
 use crate::math::krylov;
 use crate::volume::grid::{TileLevel, LEAF_LOG2};
 use crate::volume::visibility::{Resolution, MAX_LEVEL};
-use crate::volume::DensityField;
+use crate::volume::{DensityField, SparseGrid};
 use glam::IVec3;
 
 /// Resident memory of the process before a bake allocates anything (binary, thread stacks,
@@ -72,6 +72,7 @@ impl MemoryEstimate {
         reflecting: f64,
         threads: usize,
         visibility: VisibilityBytes,
+        refined: Option<RefinedBytes>,
     ) -> MemoryEstimate {
         let (n, c) = (voxels as u64, (settings.bands * settings.bands) as u64);
         let one = n * c * 4;
@@ -101,25 +102,16 @@ impl MemoryEstimate {
         };
         let lattice = match settings.single_scatter {
             true => 0,
-            false => {
-                let d = settings.lattice.directions();
-                let links = link_bytes(n, d, reflecting);
-                let build = links + n * d as u64 * LINK_PLACE_BYTES;
-                // Small lattices transport a chunk a thread, large ones one chunk at a time.
-                let in_flight = match voxels >= lattice::PARALLEL_SWEEP_LINKS {
-                    true => 1,
-                    false => threads
-                        .min(lattice::chunks_transported(
-                            settings.lattice,
-                            settings.bands,
-                        ))
-                        .max(1) as u64,
-                };
-                let transport = (links
-                    + in_flight * transport_bytes(voxels, d, reflecting, TRANSPORT_ROW_BYTES))
-                .saturating_sub(brick_bytes as u64);
-                beside + build.max(transport)
-            }
+            false => beside + lattice_bytes(voxels, settings, reflecting, threads, brick_bytes),
+        };
+        // - a bake on finer cells ([`crate::transfer::refine`]) does the point values' and the
+        //   lattice's phases there instead, and then fits both back beside the transfer.
+        let (single, lattice) = match refined {
+            Some(r) => (
+                single.max(r.single + sets / refine::FINE_SAMPLE_SHARE as u64 + far),
+                r.lattice.max(r.held + 2 * one + rows),
+            ),
+            None => (single, lattice),
         };
         // - the visibility, before T_ri's footprint pass, beside F_ms: its sweep, then the
         //   visibility built and its fit (rows and solves as above).
@@ -254,6 +246,90 @@ const FIT_SOLVE_BYTES: u64 = 10 * 8;
 fn transport_bytes(voxels: usize, directions: usize, reflecting: f64, row_bytes: u64) -> u64 {
     let rows = 4.0 + reflecting * (directions / 2) as f64;
     (rows * voxels as f64) as u64 * row_bytes
+}
+
+/// Working memory of a lattice over `voxels` cells ([`lattice::Lattice::bake_multiple`]) beside
+/// what it adds to: its links, with their places while they are built, and then the
+/// transport's state, the bricks (`brick_bytes`) released.
+fn lattice_bytes(
+    voxels: usize,
+    settings: &BakeSettings,
+    reflecting: f64,
+    threads: usize,
+    brick_bytes: usize,
+) -> u64 {
+    let (n, d) = (voxels as u64, settings.lattice.directions());
+    let links = link_bytes(n, d, reflecting);
+    let build = links + n * d as u64 * LINK_PLACE_BYTES;
+    // Small lattices transport a chunk a thread, large ones one chunk at a time.
+    let in_flight = match voxels >= lattice::PARALLEL_SWEEP_LINKS {
+        true => 1,
+        false => threads
+            .min(lattice::chunks_transported(
+                settings.lattice,
+                settings.bands,
+            ))
+            .max(1) as u64,
+    };
+    let transport = (links
+        + in_flight * transport_bytes(voxels, d, reflecting, TRANSPORT_ROW_BYTES))
+    .saturating_sub(brick_bytes as u64);
+    build.max(transport)
+}
+
+/// What a bake on finer cells ([`crate::transfer::refine`]) holds beyond the density and the
+/// transfer's layout: while it traces the finer point values (the direction sets and far field
+/// aside), while its lattice runs, and the finer values kept while they are fitted back.
+#[derive(Debug, Clone, Copy)]
+pub struct RefinedBytes {
+    pub single: u64,
+    pub lattice: u64,
+    pub held: u64,
+}
+
+impl RefinedBytes {
+    /// For `nodes` finer cells of edge `fine`, the bricks (`brick_bytes`) released while the
+    /// lattice runs.
+    fn new(
+        density: &SparseGrid,
+        nodes: u64,
+        fine: i32,
+        settings: &BakeSettings,
+        medium: Medium,
+        threads: usize,
+        brick_bytes: usize,
+    ) -> RefinedBytes {
+        let c = (settings.bands * settings.bands) as u64;
+        let carried = settings.lattice.bands(settings.bands) as u64;
+        let layout = nodes * LAYOUT_BYTES_PER_VOXEL;
+        let (points, light) = (nodes * c * 4, nodes * carried * carried * 4);
+        let reflecting = lattice::DensityMeans::new(density).reflecting_share(
+            medium.sigma_t,
+            fine,
+            settings.lattice,
+        );
+        let voxels = usize::try_from(nodes).unwrap_or(usize::MAX);
+        let transport = lattice_bytes(voxels, settings, reflecting, threads, brick_bytes);
+        RefinedBytes {
+            single: layout + points,
+            lattice: layout + points + light + transport,
+            held: layout + points + light,
+        }
+    }
+}
+
+/// The most a bake on `nodes` finer cells of edge `fine` holds beyond the density and the
+/// transfer: what [`crate::transfer::refine::fine_scale`] bounds. Reckoned with one thread
+/// and the bricks kept, so the answer, and the cache, are the same on every machine.
+pub fn refined_bytes(
+    density: &SparseGrid,
+    nodes: u64,
+    fine: i32,
+    settings: &BakeSettings,
+    medium: Medium,
+) -> u64 {
+    let r = RefinedBytes::new(density, nodes, fine, settings, medium, 1, 0);
+    r.single.max(r.lattice)
 }
 
 /// Working memory of one sun's multiple-scattering solve on a lattice of `directions` over
@@ -615,6 +691,19 @@ fn estimate(
         ),
         false => VisibilityBytes::default(),
     };
+    let threads = rayon::current_num_threads();
+    let refined = refine::fine_scale(&field.grid, medium, settings).map(|fine| {
+        let nodes = TransferLayout::estimate_len(&field.grid, fine);
+        RefinedBytes::new(
+            &field.grid,
+            nodes,
+            fine,
+            settings,
+            medium,
+            threads,
+            field.brick_bytes(),
+        )
+    });
     MemoryEstimate::new(
         field.grid.memory_bytes() + field.brick_bytes(),
         field.brick_bytes(),
@@ -624,8 +713,9 @@ fn estimate(
         settings.fits_footprints(&field.grid, medium),
         far,
         reflecting,
-        rayon::current_num_threads(),
+        threads,
         visibility,
+        refined,
     )
 }
 

@@ -11,6 +11,7 @@ pub mod lattice;
 mod layout;
 pub mod memory;
 pub mod packing;
+pub mod refine;
 pub mod shape;
 mod single;
 #[cfg(test)]
@@ -196,8 +197,9 @@ fn widen(light: &[f32], from: usize, to: usize) -> Vec<f32> {
 enum Direct {
     /// The footprint pass, fitted; it marches the far field's coarser density, kept for it.
     Footprints(DensityMip),
-    /// T_ri's point values at the nodes ([`POINT_DIRECT_ALBEDO`]).
-    Points(Vec<f32>),
+    /// T_ri as it stands: the nodes' point values ([`POINT_DIRECT_ALBEDO`]), or a finer bake's
+    /// fitted back ([`refine`]).
+    Kept(Vec<f32>),
 }
 
 /// What a bake did, for `--stats`.
@@ -216,8 +218,12 @@ pub struct BakeStats {
     pub visibility_seconds: f64,
     pub visibility_bytes: u64,
     /// Whether T_ri was fitted to footprint means (`false`: it holds the point values,
-    /// [`POINT_DIRECT_ALBEDO`]).
+    /// [`POINT_DIRECT_ALBEDO`], or a finer bake's fitted back, [`refine`]).
     pub fitted: bool,
+    /// The edge, in density voxels, of the cells the point values and the lattice were baked on:
+    /// the transfer's K, or finer where its voxels are thick ([`refine`]); 0 for a
+    /// `--single-scatter` bake.
+    pub lattice_scale: i32,
 }
 
 /// Bakes the transfer of `field`: layout, T_ri, then (unless single-scatter) F_ms. The field's
@@ -252,18 +258,24 @@ pub fn bake(
     let n = layout.len();
     let footprints = settings.fits_footprints(&field.grid, medium);
     stats.fitted = footprints;
+    let refined = refine::fine_scale(&field.grid, medium, settings);
+    stats.lattice_scale = match settings.single_scatter {
+        true => 0,
+        false => refined.unwrap_or(settings.scale),
+    };
     let clock = std::time::Instant::now();
     // The coarser density lives through the T_ri passes.
     let (near, levels) = single::far_field(&field.grid, medium.sigma_t, settings.samples);
     let mip = DensityMip::build(&field.grid, levels);
     stats.far_field_bytes = mip.memory_bytes();
     let chord_step = single::chord_step(&field.grid, medium.sigma_t);
-    let single = |field: &DensityField,
-                  mip: &DensityMip,
-                  origins,
-                  samples,
-                  visibility,
-                  bar: &indicatif::ProgressBar| {
+    let single_on = |layout: &TransferLayout,
+                     field: &DensityField,
+                     mip: &DensityMip,
+                     origins,
+                     samples,
+                     visibility,
+                     bar: &indicatif::ProgressBar| {
         let far = FarField { mip, near };
         let depth = OpticalDepth::new(field, medium.sigma_t, true)
             .with_far_field(far)
@@ -275,20 +287,28 @@ pub fn bake(
             origins,
             chord_step,
         };
-        single::bake_single(&field.grid, &layout, &depth, single, visibility, bar)
+        single::bake_single(&field.grid, layout, &depth, single, visibility, bar)
+    };
+    let single = |field: &DensityField,
+                  mip: &DensityMip,
+                  origins,
+                  samples,
+                  visibility,
+                  bar: &indicatif::ProgressBar| {
+        single_on(&layout, field, mip, origins, samples, visibility, bar)
     };
     let (mut f_ms, direct) = match settings.single_scatter {
         true => (vec![0.0; n * coeffs], Direct::Footprints(mip)),
         false => {
-            let bar = progress.phase("single", n as u64);
-            let point = single(
-                field,
-                &mip,
-                single::Origins::Node,
-                settings.samples,
-                None,
-                &bar,
-            );
+            // The point values and the lattice: on the transfer's cells, or on finer ones
+            // (`refine`), whose light is fitted back to the transfer's nodes at the end.
+            let fine = refined.map(|k| TransferLayout::build(&field.grid, k));
+            let (on, samples) = match &fine {
+                Some(fine) => (fine, refine::fine_samples(settings)),
+                None => (&layout, settings.samples),
+            };
+            let bar = progress.phase("single", on.len() as u64);
+            let point = single_on(on, field, &mip, single::Origins::Node, samples, None, &bar);
             bar.finish_and_clear();
             stats.single_seconds = clock.elapsed().as_secs_f64();
 
@@ -296,7 +316,7 @@ pub fn bake(
             progress.phase("lattice", 0);
             let energy_single = point.iter().step_by(coeffs).map(|&t| t as f64).sum();
             let lattice =
-                lattice::Lattice::build(field, &layout, settings.lattice, medium, settings.bands);
+                lattice::Lattice::build(field, on, settings.lattice, medium, settings.bands);
             // The transport samples no density: it runs without the bricks, built again once the
             // links are gone.
             field.release_bricks();
@@ -306,6 +326,7 @@ pub fn bake(
                     f_ms.iter_mut().for_each(|p| *p *= medium.albedo);
                     let done = lattice.bake_multiple(settings.bands, energy_single, &mut f_ms);
                     stats.lattice = Some(done);
+                    drop(lattice);
                     (f_ms, Direct::Footprints(mip))
                 }
                 // The point values are T_ri, and F_ms the lattice's light alone: it is gathered
@@ -314,16 +335,27 @@ pub fn bake(
                 false => {
                     drop(mip);
                     let carried = lattice.bands();
-                    let mut light = vec![0.0; n * carried * carried];
+                    let mut light = vec![0.0; on.len() * carried * carried];
                     let done = lattice.bake_multiple(carried, energy_single, &mut light);
                     stats.lattice = Some(done);
-                    (
-                        widen(&light, carried, settings.bands),
-                        Direct::Points(point),
-                    )
+                    drop(lattice);
+                    // Both layers come back through one linear fit, so at a node their sum is
+                    // the fit of the finer nodes' sums.
+                    let (t_ri, light) = match &fine {
+                        Some(fine) => {
+                            let bar = progress.phase("fit", n as u64);
+                            let back = |values: &[f32], coeffs| {
+                                fit::fitted_from_finer(&field.grid, &layout, fine, values, coeffs)
+                            };
+                            let fitted = (back(&point, coeffs), back(&light, carried * carried));
+                            bar.finish_and_clear();
+                            fitted
+                        }
+                        None => (point, light),
+                    };
+                    (widen(&light, carried, settings.bands), Direct::Kept(t_ri))
                 }
             };
-            drop(lattice);
             field.build_bricks();
             stats.lattice_seconds = clock.elapsed().as_secs_f64();
             (f_ms, direct)
@@ -344,7 +376,7 @@ pub fn bake(
     });
     let clock = std::time::Instant::now();
     let t_ri = match direct {
-        Direct::Points(point) => point,
+        Direct::Kept(t_ri) => t_ri,
         Direct::Footprints(mip) => {
             let bar = progress.phase("fit", n as u64);
             let visibility = shape.as_ref().map(|s| &s.visibility);

@@ -114,12 +114,15 @@ fn white_furnace_where_the_volume_is_optically_thick() {
     // gives ~60, at the default K = 6 (6 optical depths per face link). Torus: tubes 14 voxels
     // across, σt 2 gives 28; no transfer voxel lies two inside a tube at K = 3 or 6, so K = 2.
     // Measured: within 0.1 % (the lattice is driven by the environment at its boundary, module
-    // doc of `lattice`); it was −17 % (cloud) before. Every voxel inside, surface included:
-    // cloud −4.7 %, torus −8.5 % (where T_ri and the lattice's own unscattered light differ);
-    // those limits are regression guards just above what is achieved. The torus voxels of one
-    // ring facing the other across the gap, lit across it through gap-jumping links: +2.7 %.
-    for (file, sigma_t, k, surface) in [("cloud.vdb", 1.0, 6, 0.055), ("torus.vdb", 2.0, 2, 0.095)]
-    {
+    // doc of `lattice`); it was −17 % (cloud) before. Both bakes are on finer cells, fitted back
+    // (`refine`). Every voxel inside, surface included: cloud −1.4 %, torus +4.0 % (where T_ri
+    // and the lattice's own unscattered light differ; on the transfer's own cells −4.7 % and
+    // −8.5 %); those limits are regression guards just above what is achieved. The torus voxels of one
+    // ring facing the other across the gap, lit across it through gap-jumping links: +2.7 % on
+    // the transfer's cells, +3.3 % baked on cells of 1 and fitted back (`refine`: 3.5 optical
+    // depths per transfer voxel), whose 256×144 furnace render is closer, 0.61 % (max 4.4 %)
+    // against 1.12 % (max 8.0 %).
+    for (file, sigma_t, k, surface) in [("cloud.vdb", 1.0, 6, 0.02), ("torus.vdb", 2.0, 2, 0.045)] {
         let (d, t) = furnace_bake(file, sigma_t, k);
         let (worst, count) = furnace_deviation(&t, inside_by(&d, k, 2));
         assert!(count > 40, "{file}: only {count} voxels two inside");
@@ -136,9 +139,47 @@ fn white_furnace_where_the_volume_is_optically_thick() {
             };
             let (worst, count) = furnace_deviation(&t, facing);
             assert!(count > 100, "only {count} voxels face the other ring");
-            assert!(worst.abs() < 0.03, "furnace off by {worst} across the gap");
+            assert!(worst.abs() < 0.035, "furnace off by {worst} across the gap");
         }
     }
+}
+
+#[test]
+fn thick_transfer_voxels_are_baked_finer() {
+    // `refine`: a bake that keeps point values bakes on cells of ⌈K/2⌉ where its transfer voxels
+    // are more than REFINE_CELL_DEPTH optical depths across (the torus at σt 1: 5.2), and on its
+    // own cells where they are thinner, where it fits, or where its image is single scattering.
+    let d = load("torus.vdb");
+    let s = settings(2, 6);
+    let thick = Medium {
+        sigma_t: 1.0,
+        albedo: 0.9,
+    };
+    assert_eq!(super::refine::fine_scale(&d, thick, &s), Some(3));
+    let depth = super::cell_optical_depth(&d, 1.0, s.scale);
+    let thinner = Medium {
+        sigma_t: (0.99 * super::refine::REFINE_CELL_DEPTH / depth) as f32,
+        ..thick
+    };
+    assert_eq!(super::refine::fine_scale(&d, thinner, &s), None);
+    let fitting = Medium {
+        albedo: 0.5,
+        ..thick
+    };
+    assert_eq!(super::refine::fine_scale(&d, fitting, &s), None);
+    let single = BakeSettings {
+        single_scatter: true,
+        ..s
+    };
+    assert_eq!(super::refine::fine_scale(&d, thick, &single), None);
+    assert_eq!(super::refine::fine_scale(&d, thick, &settings(2, 1)), None);
+    // The bake says so, and its transfer stays on the transfer's own voxels.
+    let bars = crate::io::progress::Bars { quiet: true };
+    let (t, stats) = bake(&mut DensityField::new(d.clone()), thick, &s, &bars);
+    assert_eq!(stats.lattice_scale, 3);
+    assert_eq!(t.layout.len(), TransferLayout::build(&d, 6).len());
+    let (_, stats) = bake(&mut DensityField::new(d.clone()), thinner, &s, &bars);
+    assert_eq!(stats.lattice_scale, 6);
 }
 
 #[test]
@@ -180,21 +221,28 @@ fn a_medium_that_scatters_most_of_its_light_keeps_the_point_values() {
     let f = DensityField::new(d.clone());
     let s = settings(4, 6);
     let coeffs = s.bands * s.bands;
-    // σt 1 at density 1 holds a whole optical depth per voxel: no coarser levels.
-    let sigma_t = 1.0;
-    assert_eq!(super::single::far_field(&d, sigma_t, s.samples).1, 0);
+    // 1.3 optical depths per transfer voxel: point values, on the transfer's own cells.
+    let sigma_t = 0.25;
+    let depth = super::cell_optical_depth(&d, sigma_t, s.scale);
+    assert!((super::POINT_DIRECT_CELL_DEPTH..super::refine::REFINE_CELL_DEPTH).contains(&depth));
     let layout = TransferLayout::build(&d, s.scale);
     let single = SingleSettings {
         bands: s.bands,
         samples: s.samples,
         seed: s.seed,
         origins: Origins::Node,
-        chord_step: 1.0,
+        chord_step: super::single::chord_step(&d, sigma_t),
     };
+    // The far field the bake's node pass marches.
+    let (near, levels) = super::single::far_field(&d, sigma_t, s.samples);
+    let mip = crate::volume::mip::DensityMip::build(&d, levels);
+    let far = crate::volume::transmittance::FarField { mip: &mip, near };
     let point = bake_single(
         &d,
         &layout,
-        &OpticalDepth::new(&f, sigma_t, true).with_dark_test(),
+        &OpticalDepth::new(&f, sigma_t, true)
+            .with_far_field(far)
+            .with_dark_test(),
         single,
         None,
         &indicatif::ProgressBar::hidden(),
@@ -213,7 +261,6 @@ fn a_medium_that_scatters_most_of_its_light_keeps_the_point_values() {
     let medium = |albedo, sigma_t| Medium { sigma_t, albedo };
     assert!(!s.fits_footprints(&d, medium(super::POINT_DIRECT_ALBEDO, sigma_t)));
     // Where a transfer voxel is thin the fit stays, at any albedo.
-    let depth = super::cell_optical_depth(&d, sigma_t, s.scale);
     let thin = sigma_t * (0.99 * super::POINT_DIRECT_CELL_DEPTH / depth) as f32;
     assert!(s.fits_footprints(&d, medium(0.9, thin)));
     assert!(!s.fits_footprints(&d, medium(0.9, 1.02 * thin)));

@@ -1,0 +1,70 @@
+//! Thick transfer voxels baked finer: where a transfer voxel is more than
+//! [`REFINE_CELL_DEPTH`] optical depths across, a multiple-scattering bake takes T_ri's point
+//! values at the nodes of cells half as wide and runs the lattice over those cells, then fits
+//! both back to the transfer's own nodes ([`super::fit::fitted_from_finer`]). The cache, the
+//! relight and the march do not change: only the node values do (docs/model.md, "Thick cells,
+//! baked finer").
+//!
+//! Why: under soft light the node values are right — against the lattice solved on every density
+//! voxel, the torus's nodes at 1.92 optical depths per transfer voxel are 2.5 % brighter in
+//! total — but a node outside a lit surface holds the light of an empty point, and the light
+//! inside falls (the unscattered part) or peaks (the scattered part) within a fraction of a
+//! voxel, so interpolating point values between nodes K voxels apart is what errs: 11.0 % against
+//! the path tracer where the same nodes fitted to the finer bake's light, read where the density
+//! is, give 7.1 % (docs/accuracy.md, "Thick cells, baked finer").
+//!
+//! Both layers come back through one linear fit, so at a node T_ri + F_ms is the fit of the fine
+//! nodes' totals, which in a white furnace are √(4π) + (point − the lattice's unscattered light)
+//! as on the transfer's own cells: the furnace holds as well as it did.
+
+use super::layout::TransferLayout;
+use super::memory;
+use super::{cell_optical_depth, BakeSettings, Medium};
+use crate::volume::SparseGrid;
+
+/// Mean optical depth of a transfer voxel ([`cell_optical_depth`]) above which a bake that keeps
+/// point values bakes finer. Measured against the path tracer (256×144, studio.exr, albedo 0.9,
+/// docs/accuracy.md), baking finer brings the torus / cloud at 1.92 optical depths per transfer
+/// voxel from 11.0 / 9.9 % to 7.1 / 7.3 %, and at 0.96 from 6.6 / 5.2 % to 4.8 / 3.7 %; it costs
+/// the bake 2.7× its time and 3.3× its peak on the bench cloud at σt 1.6 (8.6 per transfer voxel)
+/// and 3.7× / 3.5× on the quarter-size cloud at σt 0.2 (1.08), where the scale's time target
+/// (a fifth of `a4d4a99`'s bake) would no longer hold. 1.5 lies between 1.08 and 1.92.
+pub const REFINE_CELL_DEPTH: f64 = 1.5;
+
+/// The share of `--samples` traced at each finer node. A finer node stands for an eighth of a
+/// transfer voxel and the fit averages the eight or more around each node, so a quarter of the
+/// directions there traces twice the rays of the transfer's own nodes. Two bake seeds of the
+/// torus at 1.92 / 5.2 optical depths per transfer voxel then differ by 0.41 / 0.64 % per image
+/// (all the directions: 0.06 / 0.13 %, an eighth 0.92 / 1.31 %; issue 16 asks ≤ 1 %), and no
+/// accuracy row moves by more than 0.1 point between all and an eighth.
+pub const FINE_SAMPLE_SHARE: usize = 4;
+
+/// Most working memory the finer bake may take (its point values, its lattice's links and
+/// transport, its light, beside the transfer); past it the bake keeps the transfer's own cells.
+/// A fixed figure, so a bake gives the same cache on every machine. The bench cloud at σt 1.6
+/// takes about 130 MB of it; the half-size production cloud would need several GB.
+pub const MAX_REFINED_BYTES: u64 = 1 << 30;
+
+/// The edge, in density voxels, of the finer cells a bake of `medium` in `density` at `settings`
+/// is baked on, or `None` to bake on the transfer's own: half the transfer's (rounded up) where
+/// the bake keeps point values ([`BakeSettings::fits_footprints`]), its voxels are thicker than
+/// [`REFINE_CELL_DEPTH`] and its working memory fits [`MAX_REFINED_BYTES`].
+pub fn fine_scale(density: &SparseGrid, medium: Medium, settings: &BakeSettings) -> Option<i32> {
+    let fine = (settings.scale + 1) / 2;
+    let thick = cell_optical_depth(density, medium.sigma_t, settings.scale) > REFINE_CELL_DEPTH;
+    if settings.single_scatter
+        || fine >= settings.scale
+        || !thick
+        || settings.fits_footprints(density, medium)
+    {
+        return None;
+    }
+    let nodes = TransferLayout::estimate_len(density, fine);
+    let bytes = memory::refined_bytes(density, nodes, fine, settings, medium);
+    (bytes <= MAX_REFINED_BYTES).then_some(fine)
+}
+
+/// The directions traced at each finer node ([`FINE_SAMPLE_SHARE`]).
+pub fn fine_samples(settings: &BakeSettings) -> usize {
+    (settings.samples / FINE_SAMPLE_SHARE).max(1)
+}
