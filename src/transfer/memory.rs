@@ -387,6 +387,8 @@ pub struct BakePlan {
     /// The medium, kept so a refusal can estimate other scales (their cells are thicker or
     /// thinner).
     pub medium: Medium,
+    /// The edge of the finer cells the light is baked on ([`refine`]), if it is.
+    pub fine_scale: Option<i32>,
 }
 
 impl BakePlan {
@@ -399,6 +401,7 @@ impl BakePlan {
             settings.scale,
             settings.lattice,
         );
+        let fine_scale = refine::fine_scale(&field.grid, medium, settings);
         let about = TransferLayout::estimate_len(&field.grid, settings.scale);
         if about > MAX_LAID_OUT_VOXELS {
             let n = usize::try_from(about).unwrap_or(usize::MAX);
@@ -410,6 +413,7 @@ impl BakePlan {
                 estimated: true,
                 far_bytes: far,
                 medium,
+                fine_scale,
             };
         }
         let layout = TransferLayout::build(&field.grid, settings.scale);
@@ -428,14 +432,18 @@ impl BakePlan {
             estimated: false,
             far_bytes: far,
             medium,
+            fine_scale,
         }
     }
 
     /// The estimate as one line: counts, total and its parts.
     pub fn describe(&self) -> String {
         let e = &self.estimate;
+        let finer = self.fine_scale.map_or(String::new(), |k| {
+            format!(" (thick: light baked on cells of {k} and fitted back)")
+        });
         format!(
-            "{}{} transfer voxels in {} tiles; estimated peak memory {} (density {}, transfer {}, working {})",
+            "{}{} transfer voxels in {} tiles{finer}; estimated peak memory {} (density {}, transfer {}, working {})",
             if self.estimated { "about " } else { "" },
             self.transfer_voxels,
             self.transfer_tiles,
@@ -693,7 +701,8 @@ fn estimate(
     };
     let threads = rayon::current_num_threads();
     let refined = refine::fine_scale(&field.grid, medium, settings).map(|fine| {
-        let nodes = TransferLayout::estimate_len(&field.grid, fine);
+        // A finer bake is only chosen where its layout was counted (`refine::fine_scale`).
+        let nodes = TransferLayout::build(&field.grid, fine).len() as u64;
         RefinedBytes::new(
             &field.grid,
             nodes,

@@ -421,24 +421,39 @@ pub fn bake(
     (transfer, stats)
 }
 
-/// Optical depth per transfer voxel (σt × K × voxel size × mean density) above which the 1/K
-/// resolution visibly costs accuracy under soft light: docs/accuracy.md measures the fixtures
-/// under studio.exr 4–5 % (single) and 6–7 % (multiple) off the path tracer at 0.96, 7 % and
-/// 10–12 % at 1.92, and 10–13 % and 22–23 % at the default σt; a sun's light, resolved per
-/// density voxel, leaves the default scene (the built-in sky) 7 % off.
+/// Optical depth of the cells a transfer's light is baked on (σt × K × voxel size × mean density,
+/// K halved where [`refine`] bakes finer) above which the resolution visibly costs accuracy under
+/// soft light: docs/accuracy.md measures the fixtures under studio.exr 4–5 % (single) and 5–7 %
+/// (multiple) off the path tracer at 0.96 optical depths per transfer voxel, 7 % at 1.92 (baked
+/// on cells of 3: 0.96 there), and 13 % (single) and 18–20 % (multiple) at the default σt (2.6
+/// on cells of 3); a sun's light, resolved per density voxel, leaves the default scene (the
+/// built-in sky) 7 % off.
 pub const MAX_RESOLVED_CELL_DEPTH: f64 = 1.0;
 
 /// The warning for a transfer whose voxels are too thick to resolve where light enters (see
 /// [`MAX_RESOLVED_CELL_DEPTH`]), naming a `--sigma-t` that clears it and the other flag that helps.
+/// A multiple-scattering bake at the albedo that keeps point values ([`POINT_DIRECT_ALBEDO`])
+/// is taken to bake its thick voxels finer ([`refine`]), as it does unless `--fit-direct` is
+/// given or its memory bound stops it.
 pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> Option<String> {
     let (mean, voxel) = mean_density(density)?;
     let k = scale as f64;
     let depth = cell_depth(medium.sigma_t, k, voxel, mean);
-    (depth > MAX_RESOLVED_CELL_DEPTH).then(|| {
+    let fine = (scale + 1) / 2;
+    let refined =
+        depth > refine::REFINE_CELL_DEPTH && medium.albedo >= POINT_DIRECT_ALBEDO && fine < scale;
+    let (resolved, on) = match refined {
+        true => (
+            cell_depth(medium.sigma_t, fine as f64, voxel, mean),
+            format!(", baked on cells of {fine}"),
+        ),
+        false => (depth, String::new()),
+    };
+    (resolved > MAX_RESOLVED_CELL_DEPTH).then(|| {
         format!(
-            "{depth:.2} optical depths per transfer voxel (σt {} × K {scale} × voxel {voxel:.3} × mean density {mean:.3}): \
-             an environment map's soft light enters within a fraction of a transfer voxel, so without a \
-             sun expect errors well above 10 % (a sun's light is resolved per density voxel; \
+            "{depth:.2} optical depths per transfer voxel (σt {} × K {scale} × voxel {voxel:.3} × mean density {mean:.3}{on}): \
+             an environment map's soft light enters within a fraction of a voxel the light is baked on, so without a \
+             sun expect errors above 10 % (a sun's light is resolved per density voxel; \
              docs/accuracy.md); a smaller --scale helps, and --sigma-t {} keeps it below \
              {MAX_RESOLVED_CELL_DEPTH} optical depth per transfer voxel",
             medium.sigma_t,

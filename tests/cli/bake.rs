@@ -145,6 +145,10 @@ fn a_bake_too_thick_to_resolve_says_so_and_which_flag_helps() {
         "",
         "--sigma-t {suggested} still warns"
     );
+    // 1.94 optical depths per transfer voxel are baked on cells of 3 (0.97 there): no warning;
+    // 1.18 are not, and warn.
+    assert_eq!(dry("0.36", false), "");
+    assert!(dry("0.22", false).contains("warning: 1.18 optical depths"));
 }
 
 #[test]
