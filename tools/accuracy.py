@@ -308,8 +308,9 @@ def seed_noise(lines):
         print(lines[-1], flush=True)
     lines += [
         "",
-        "The default bake (albedo 0.9) keeps T_ri's point values at the nodes, and what varies "
-        "with the seed there is the rotation of each node's direction set. A `--single-scatter` "
+        "The default bake (albedo 0.9) keeps T_ri's point values at the nodes (of cells of 3 where "
+        "a transfer voxel is over 1.5 optical depths across, fitted back), and what varies with "
+        "the seed there is the rotation of each node's direction set. A `--single-scatter` "
         "bake fits T_ri to footprint means, each direction's share of which is T_ri averaged along "
         "one chord of the footprint ([model.md](model.md#the-transfer)); where across the "
         "footprint each chord lies varies with the seed too, and under a studio map it shows as "

@@ -253,7 +253,8 @@ pub fn bake(
     // as albedo × point before the lattice adds to it, and the fitted T_ri comes off at the end,
     // so no phase holds the point values beside both F_ms and T_ri. A bake that does not fit
     // footprints ([`POINT_DIRECT_ALBEDO`]) keeps the point values as T_ri, and its F_ms is the
-    // lattice's scattered light alone.
+    // lattice's scattered light alone; where its voxels are thick it takes both on finer cells
+    // and fits them back ([`refine`]).
     let coeffs = settings.bands * settings.bands;
     let n = layout.len();
     let footprints = settings.fits_footprints(&field.grid, medium);
@@ -439,7 +440,7 @@ pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> O
     let (mean, voxel) = mean_density(density)?;
     let k = scale as f64;
     let depth = cell_depth(medium.sigma_t, k, voxel, mean);
-    let fine = (scale + 1) / 2;
+    let fine = refine::finer(scale);
     let refined =
         depth > refine::REFINE_CELL_DEPTH && medium.albedo >= POINT_DIRECT_ALBEDO && fine < scale;
     let (resolved, on) = match refined {

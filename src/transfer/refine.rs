@@ -50,7 +50,7 @@ pub const MAX_REFINED_BYTES: u64 = 1 << 30;
 /// the bake keeps point values ([`BakeSettings::fits_footprints`]), its voxels are thicker than
 /// [`REFINE_CELL_DEPTH`] and its working memory fits [`MAX_REFINED_BYTES`].
 pub fn fine_scale(density: &SparseGrid, medium: Medium, settings: &BakeSettings) -> Option<i32> {
-    let fine = (settings.scale + 1) / 2;
+    let fine = finer(settings.scale);
     let thick = cell_optical_depth(density, medium.sigma_t, settings.scale) > REFINE_CELL_DEPTH;
     if settings.single_scatter
         || fine >= settings.scale
@@ -75,6 +75,12 @@ pub fn fine_scale(density: &SparseGrid, medium: Medium, settings: &BakeSettings)
 /// The most [`TransferLayout::estimate_len`] is taken to overcount finer cells by: measured 6.0×
 /// on the fixture cloud at cells of 3 (69 717 against 11 708).
 const ESTIMATE_OVERCOUNT: u64 = 8;
+
+/// The edge of the cells a transfer of `scale` is baked on where it bakes finer: half its own,
+/// rounded up (3 at the default 6).
+pub fn finer(scale: i32) -> i32 {
+    (scale + 1) / 2
+}
 
 /// The directions traced at each finer node ([`FINE_SAMPLE_SHARE`]).
 pub fn fine_samples(settings: &BakeSettings) -> usize {
