@@ -409,7 +409,15 @@ impl BakePlan {
             return BakePlan {
                 transfer_voxels: n,
                 transfer_tiles: n / 64,
-                estimate: estimate(field, layout as usize, n, settings, medium, far, reflecting),
+                estimate: estimate(
+                    field,
+                    layout as usize,
+                    n,
+                    settings,
+                    (medium, fine_scale),
+                    far,
+                    reflecting,
+                ),
                 estimated: true,
                 far_bytes: far,
                 medium,
@@ -425,7 +433,7 @@ impl BakePlan {
                 layout.memory_bytes(),
                 layout.len(),
                 settings,
-                medium,
+                (medium, fine_scale),
                 far,
                 reflecting,
             ),
@@ -486,7 +494,10 @@ impl BakePlan {
                 layout_bytes,
                 voxels,
                 settings,
-                self.medium,
+                (
+                    self.medium,
+                    refine::fine_scale(&field.grid, self.medium, settings),
+                ),
                 self.far_bytes,
                 r,
             )
@@ -503,7 +514,10 @@ impl BakePlan {
                 bytes,
                 voxels,
                 &at_k,
-                self.medium,
+                (
+                    self.medium,
+                    refine::fine_scale(&field.grid, self.medium, &at_k),
+                ),
                 self.far_bytes,
                 reflecting(k, s.lattice),
             )
@@ -683,12 +697,14 @@ fn far_field_bytes(field: &DensityField, levels: usize) -> u64 {
     (FAR_BLOCK_COST * per_block * coarse as f64) as u64
 }
 
+/// The estimate of a bake of `voxels` transfer voxels at `settings`, of `medium` on the finer
+/// cells `fine_scale` decided for it ([`refine::fine_scale`], asked once by the caller).
 fn estimate(
     field: &DensityField,
     layout_bytes: usize,
     voxels: usize,
     settings: &BakeSettings,
-    medium: Medium,
+    (medium, fine_scale): (Medium, Option<i32>),
     far: u64,
     reflecting: f64,
 ) -> MemoryEstimate {
@@ -700,7 +716,7 @@ fn estimate(
         false => VisibilityBytes::default(),
     };
     let threads = rayon::current_num_threads();
-    let refined = refine::fine_scale(&field.grid, medium, settings).map(|fine| {
+    let refined = fine_scale.map(|fine| {
         // A finer bake is only chosen where its layout was counted (`refine::fine_scale`).
         let nodes = TransferLayout::build(&field.grid, fine).len() as u64;
         RefinedBytes::new(

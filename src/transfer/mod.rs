@@ -290,14 +290,6 @@ pub fn bake(
         };
         single::bake_single(&field.grid, layout, &depth, single, visibility, bar)
     };
-    let single = |field: &DensityField,
-                  mip: &DensityMip,
-                  origins,
-                  samples,
-                  visibility,
-                  bar: &indicatif::ProgressBar| {
-        single_on(&layout, field, mip, origins, samples, visibility, bar)
-    };
     let (mut f_ms, direct) = match settings.single_scatter {
         true => (vec![0.0; n * coeffs], Direct::Footprints(mip)),
         false => {
@@ -381,7 +373,8 @@ pub fn bake(
         Direct::Footprints(mip) => {
             let bar = progress.phase("fit", n as u64);
             let visibility = shape.as_ref().map(|s| &s.visibility);
-            let mut t_ri = single(
+            let mut t_ri = single_on(
+                &layout,
                 field,
                 &mip,
                 single::Origins::Footprint,
@@ -440,15 +433,12 @@ pub fn resolution_warning(density: &SparseGrid, medium: Medium, scale: i32) -> O
     let (mean, voxel) = mean_density(density)?;
     let k = scale as f64;
     let depth = cell_depth(medium.sigma_t, k, voxel, mean);
-    let fine = refine::finer(scale);
-    let refined =
-        depth > refine::REFINE_CELL_DEPTH && medium.albedo >= POINT_DIRECT_ALBEDO && fine < scale;
-    let (resolved, on) = match refined {
-        true => (
+    let (resolved, on) = match refine::finer_cells(depth, medium, scale) {
+        Some(fine) => (
             cell_depth(medium.sigma_t, fine as f64, voxel, mean),
             format!(", baked on cells of {fine}"),
         ),
-        false => (depth, String::new()),
+        None => (depth, String::new()),
     };
     (resolved > MAX_RESOLVED_CELL_DEPTH).then(|| {
         format!(

@@ -19,14 +19,14 @@
 
 use super::layout::TransferLayout;
 use super::memory;
-use super::{cell_optical_depth, BakeSettings, Medium};
+use super::{cell_optical_depth, BakeSettings, Medium, POINT_DIRECT_ALBEDO};
 use crate::volume::SparseGrid;
 
 /// Mean optical depth of a transfer voxel ([`cell_optical_depth`]) above which a bake that keeps
 /// point values bakes finer. Measured against the path tracer (256×144, studio.exr, albedo 0.9,
 /// docs/accuracy.md), baking finer brings the torus / cloud at 1.92 optical depths per transfer
 /// voxel from 11.0 / 9.9 % to 7.1 / 7.3 %, and at 0.96 from 6.6 / 5.2 % to 4.8 / 3.7 %; it costs
-/// the bake 2.7× its time and 3.3× its peak on the bench cloud at σt 1.6 (8.6 per transfer voxel)
+/// the bake 3.2× its time and 3.3× its peak on the bench cloud at σt 1.6 (8.6 per transfer voxel)
 /// and 3.7× / 3.5× on the quarter-size cloud at σt 0.2 (1.08), where the scale's time target
 /// (a fifth of `a4d4a99`'s bake) would no longer hold. 1.5 lies between 1.08 and 1.92.
 pub const REFINE_CELL_DEPTH: f64 = 1.5;
@@ -42,23 +42,19 @@ pub const FINE_SAMPLE_SHARE: usize = 4;
 /// Most working memory the finer bake may take (its point values, its lattice's links and
 /// transport, its light, beside the transfer); past it the bake keeps the transfer's own cells.
 /// A fixed figure, so a bake gives the same cache on every machine. The bench cloud at σt 1.6
-/// takes about 130 MB of it; the half-size production cloud would need several GB.
+/// peaks at 175 MB in all; the half-size production cloud would need several GB.
 pub const MAX_REFINED_BYTES: u64 = 1 << 30;
 
 /// The edge, in density voxels, of the finer cells a bake of `medium` in `density` at `settings`
-/// is baked on, or `None` to bake on the transfer's own: half the transfer's (rounded up) where
-/// the bake keeps point values ([`BakeSettings::fits_footprints`]), its voxels are thicker than
-/// [`REFINE_CELL_DEPTH`] and its working memory fits [`MAX_REFINED_BYTES`].
+/// is baked on, or `None` to bake on the transfer's own: [`finer_cells`] for a bake with multiple
+/// scattering and without `--fit-direct` (one that keeps point values,
+/// [`BakeSettings::fits_footprints`]), where its working memory fits [`MAX_REFINED_BYTES`].
 pub fn fine_scale(density: &SparseGrid, medium: Medium, settings: &BakeSettings) -> Option<i32> {
-    let fine = finer(settings.scale);
-    let thick = cell_optical_depth(density, medium.sigma_t, settings.scale) > REFINE_CELL_DEPTH;
-    if settings.single_scatter
-        || fine >= settings.scale
-        || !thick
-        || settings.fits_footprints(density, medium)
-    {
+    if settings.single_scatter || settings.fit_direct {
         return None;
     }
+    let depth = cell_optical_depth(density, medium.sigma_t, settings.scale);
+    let fine = finer_cells(depth, medium, settings.scale)?;
     // The estimated count is up to several times the truth on small cells, whose leaves' boxes
     // overlap: it only rules out what could not fit however it overcounts; below that the finer
     // layout is counted.
@@ -76,10 +72,15 @@ pub fn fine_scale(density: &SparseGrid, medium: Medium, settings: &BakeSettings)
 /// on the fixture cloud at cells of 3 (69 717 against 11 708).
 const ESTIMATE_OVERCOUNT: u64 = 8;
 
-/// The edge of the cells a transfer of `scale` is baked on where it bakes finer: half its own,
-/// rounded up (3 at the default 6).
-pub fn finer(scale: i32) -> i32 {
-    (scale + 1) / 2
+/// The edge of the finer cells a multiple-scattering bake of `medium` at `scale` takes where its
+/// transfer voxels are `depth` optical depths across, its flags and memory bound aside: half its
+/// own (rounded up, 3 at the default 6) where it keeps point values (albedo ≥
+/// [`POINT_DIRECT_ALBEDO`]; its voxels are thicker than [`super::POINT_DIRECT_CELL_DEPTH`] here) and
+/// `depth` is over [`REFINE_CELL_DEPTH`]. The resolution warning asks it too.
+pub fn finer_cells(depth: f64, medium: Medium, scale: i32) -> Option<i32> {
+    let fine = (scale + 1) / 2;
+    (depth > REFINE_CELL_DEPTH && medium.albedo >= POINT_DIRECT_ALBEDO && fine < scale)
+        .then_some(fine)
 }
 
 /// The directions traced at each finer node ([`FINE_SAMPLE_SHARE`]).
