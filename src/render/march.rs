@@ -32,12 +32,13 @@ use std::ops::ControlFlow;
 use glam::{DVec3, IVec3, Vec3};
 use indicatif::ProgressBar;
 
-use crate::math::floor::{ceil, floor_split};
+use crate::math::floor::ceil;
 use crate::math::hash::hash_unit;
 use crate::render::camera::{Camera, STREAM_STEP};
 use crate::render::film::{self, Background, RayResult};
 use crate::render::relight::Radiance;
-use crate::transfer::{Medium, TransferLayout, PHASE};
+use crate::transfer::basis::{window_index, MAX_EDGE, WINDOW};
+use crate::transfer::{Basis, Medium, TransferLayout, PHASE};
 use crate::volume::bricks::BrickSampler;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
 use crate::volume::visibility::{Visibility, VisibilitySampler};
@@ -171,12 +172,16 @@ pub struct SunRadiance<'a> {
 }
 
 /// The suns' multiply scattered radiance at the nodes of their lattice: RGB per slot, and a last
-/// all-zero record that missing corners point at.
+/// all-zero record that missing nodes point at. Point values, read trilinearly.
 struct SunNodes<'a> {
     inv_k: f32,
     layout: &'a TransferLayout,
     nodes: &'a [[f32; 3]],
 }
+
+/// The basis the suns' lattice is read with: its nodes hold point values.
+const SUN_BASIS: Basis = Basis::Tent;
+const SUN_EDGE: usize = SUN_BASIS.edge();
 
 impl<'a> SunRadiance<'a> {
     /// `multiple`: the suns' lattice and its nodes' radiance, one record more than it has nodes
@@ -198,23 +203,22 @@ impl<'a> SunRadiance<'a> {
         }
     }
 
-    /// Moves the weights gathered in the current cell of the suns' lattice into the sum.
+    /// Moves the weights gathered in the current window of the suns' lattice into the sum.
     fn flush(&self, sum: &mut SunSum) {
-        if let (Some(m), Some(slots)) = (&self.multiple, sum.cell.slots) {
-            add_corners(&mut sum.indirect, &slots, &sum.weights, m.nodes, 0);
+        if let Some(m) = &self.multiple {
+            let [indirect] = &mut sum.indirect;
+            sum.window.flush::<SUN_EDGE, 3, 1>(m.nodes, [(0, indirect)]);
         }
-        sum.weights = [0.0; 8];
     }
 }
 
 /// A ray's sum for [`SunRadiance`]: one shadow cursor per sun and the direct RGB so far; the
-/// cell of the suns' lattice, its steps' weights per corner and the indirect RGB so far.
+/// window of the suns' lattice with its steps' weights, and the indirect RGB so far.
 pub struct SunSum {
     tracks: Vec<SunTrack>,
     direct: [f32; 3],
-    cell: Cell,
-    weights: [f32; 8],
-    indirect: [f32; 3],
+    window: Window<1>,
+    indirect: [[f32; 3]; 1],
 }
 
 /// What a ray keeps per sun: its shadow cursor, and the depth read at the end of its last split
@@ -235,9 +239,8 @@ impl InScatter for SunRadiance<'_> {
         SunSum {
             tracks: vec![SunTrack::default(); self.suns.len()],
             direct: [0.0; 3],
-            cell: Cell::default(),
-            weights: [0.0; 8],
-            indirect: [0.0; 3],
+            window: Window::default(),
+            indirect: [[0.0; 3]],
         }
     }
 
@@ -261,15 +264,13 @@ impl InScatter for SunRadiance<'_> {
             }
         }
         if let Some(m) = &self.multiple {
-            let (b, f) = floor_split(step.p * m.inv_k);
-            if sum.cell.base != Some(b) {
+            let (b, axes) = SUN_BASIS.window(step.p * m.inv_k);
+            if sum.window.base != Some(b) {
                 self.flush(sum);
-                sum.cell.enter(m.layout, b, (m.nodes.len() - 1) as u32);
+                sum.window
+                    .enter(m.layout, b, SUN_EDGE, (m.nodes.len() - 1) as u32);
             }
-            let c = step.weight();
-            for (s, w) in sum.weights.iter_mut().zip(corner_weights(f)) {
-                *s += c * w;
-            }
+            sum.window.add::<SUN_EDGE, 1>(&axes, [step.weight()]);
         }
     }
 
@@ -280,10 +281,8 @@ impl InScatter for SunRadiance<'_> {
             track.last_end = None;
             track.cursor.end_ray();
         }
-        [
-            std::mem::take(&mut sum.direct),
-            std::mem::take(&mut sum.indirect),
-        ]
+        let [indirect] = std::mem::take(&mut sum.indirect);
+        [std::mem::take(&mut sum.direct), indirect]
     }
 }
 
@@ -368,75 +367,145 @@ fn sun_depth_along(start: f32, middle: f32, end: f32) -> impl Fn(f32) -> f32 {
     move |s| (start + s * (slope + s * curve)).clamp(lo, hi)
 }
 
-/// The interpolation cell of a layout that a ray's last step lay in, and its corners' record
-/// slots: a ray takes about K steps per cell, so the layout's lookup is paid once per cell
-/// crossed.
-#[derive(Default)]
-struct Cell {
+/// The window of nodes around a ray's last step ([`Basis::window`]), their record slots, and per
+/// layer the Σ c·w of its steps there per node. A ray takes about K steps per window, so the
+/// layout's lookup and the products with node data are paid once per window crossed; a step
+/// adds only its weights.
+struct Window<const L: usize> {
     base: Option<IVec3>,
-    slots: Option<[u32; 8]>,
+    /// Where in `recent` the current window's slots are.
+    current: usize,
+    /// The windows entered lately, by a hash of their lowest node: the next ray, next to this
+    /// one, crosses the same windows, and finds their slots here instead of in the layout.
+    recent: [(Option<IVec3>, Option<[u32; WINDOW]>); RECENT_WINDOWS],
+    sums: [[f32; WINDOW]; L],
 }
 
-impl Cell {
-    /// Moves to the cell whose lowest corner is node `base` of `layout` (`missing`: the record
-    /// its absent corners point at).
-    #[inline]
-    fn enter(&mut self, layout: &TransferLayout, base: IVec3, missing: u32) {
-        self.base = Some(base);
-        self.slots = layout.cell(base, missing);
-    }
-}
+/// Windows a ray's sum remembers ([`Window::recent`]): a ray crosses a few, its neighbours the
+/// same ones.
+const RECENT_WINDOWS: usize = 32;
 
-/// Adds Σ_n w[n]·RGB to `out`, RGB the channels `from..from + 3` of the record of corner n.
-#[inline]
-fn add_corners<const N: usize>(
-    out: &mut [f32; 3],
-    slots: &[u32; 8],
-    w: &[f32; 8],
-    nodes: &[[f32; N]],
-    from: usize,
-) {
-    for (&slot, &w) in slots.iter().zip(w) {
-        let node = &nodes[slot as usize][from..from + 3];
-        for (o, v) in out.iter_mut().zip(node) {
-            *o += w * v;
+impl<const L: usize> Default for Window<L> {
+    fn default() -> Self {
+        Window {
+            base: None,
+            current: 0,
+            recent: [(None, None); RECENT_WINDOWS],
+            sums: [[0.0; WINDOW]; L],
         }
     }
 }
 
-/// The trilinear weights of a cell's eight corners at fractions `f`, corner n having x = bit 2,
-/// y = bit 1, z = bit 0 ([`TransferLayout::cell`]).
-#[inline]
-fn corner_weights(f: Vec3) -> [f32; 8] {
-    let g = Vec3::ONE - f;
-    let yz = [g.y * g.z, g.y * f.z, f.y * g.z, f.y * f.z];
-    let mut w = [0.0f32; 8];
-    for (n, yz) in yz.into_iter().enumerate() {
-        w[n] = g.x * yz;
-        w[n + 4] = f.x * yz;
+impl<const L: usize> Window<L> {
+    /// Moves to the window whose lowest node is `base` of `layout`, `edge` nodes wide
+    /// (`missing`: the record its absent nodes point at).
+    #[inline]
+    fn enter(&mut self, layout: &TransferLayout, base: IVec3, edge: usize, missing: u32) {
+        self.base = Some(base);
+        let key = base.as_uvec3() * glam::UVec3::new(0x9E37_79B1, 0x85EB_CA77, 0xC2B2_AE3D);
+        self.current = ((key.x ^ key.y ^ key.z) >> 27) as usize % RECENT_WINDOWS;
+        let entry = &mut self.recent[self.current];
+        if entry.0 != Some(base) {
+            *entry = (Some(base), layout.window(base, edge, missing));
+        }
     }
-    w
+
+    /// The current window's slots (`None`: none of its nodes exists).
+    #[inline(always)]
+    fn slots(&self) -> Option<&[u32; WINDOW]> {
+        self.recent[self.current].1.as_ref()
+    }
+
+    /// Adds a step's weight per node, from its weights per axis `axes` ([`Basis::window`]) for
+    /// a basis `E` nodes wide, times `c[l]` to layer l (the first `A` layers).
+    #[inline(always)]
+    fn add<const E: usize, const A: usize>(&mut self, axes: &[Vec3; MAX_EDGE], c: [f32; A]) {
+        // The y–z plane's weights once, then a row of them per x: straight runs of products.
+        let mut yz = [0.0; MAX_EDGE * MAX_EDGE];
+        for y in 0..E {
+            for z in 0..E {
+                yz[y * E + z] = axes[y].y * axes[z].z;
+            }
+        }
+        for (sums, c) in self.sums.iter_mut().zip(c) {
+            for x in 0..E {
+                let cx = c * axes[x].x;
+                let row = &mut sums[x * E * E..][..E * E];
+                for (s, w) in row.iter_mut().zip(&yz[..E * E]) {
+                    *s += cx * w;
+                }
+            }
+        }
+    }
+
+    /// Σ_n w_n·value(slot_n) at a step with weights per axis `axes`, for a basis `E` nodes wide.
+    #[inline(always)]
+    fn read<const E: usize>(&self, axes: &[Vec3; MAX_EDGE], value: impl Fn(u32) -> f32) -> f32 {
+        let Some(slots) = self.slots() else {
+            return 0.0;
+        };
+        let mut sum = 0.0;
+        for x in 0..E {
+            for y in 0..E {
+                let wxy = axes[x].x * axes[y].y;
+                for z in 0..E {
+                    sum += wxy * axes[z].z * value(slots[window_index(E, x, y, z)]);
+                }
+            }
+        }
+        sum
+    }
+
+    /// For each output (layer l, sum), adds Σ_n (Σ c·w)_n of layer l times node n's record,
+    /// for a basis `E` nodes wide; then empties the sums.
+    #[inline(always)]
+    fn flush<const E: usize, const N: usize, const M: usize>(
+        &mut self,
+        nodes: &[[f32; N]],
+        outputs: [(usize, &mut [f32; N]); M],
+    ) {
+        let n = E * E * E;
+        if let Some(slots) = self.slots() {
+            for (layer, out) in outputs {
+                // Summed apart from `out`, which the compiler cannot tell from the sums: kept in
+                // registers, not stored back node after node.
+                let mut total = [0.0; N];
+                for (slot, s) in slots[..n].iter().zip(&self.sums[layer][..n]) {
+                    for (t, v) in total.iter_mut().zip(&nodes[*slot as usize]) {
+                        *t += s * v;
+                    }
+                }
+                for (o, t) in out.iter_mut().zip(total) {
+                    *o += t;
+                }
+            }
+        }
+        for sums in &mut self.sums {
+            sums[..n].fill(0.0);
+        }
+    }
 }
 
-/// Ls interpolated from the per-transfer-voxel radiance of [`crate::render::relight`], with the
-/// trilinear weights of [`TransferLayout::corners`].
+/// Ls read from the per-transfer-voxel radiance of [`crate::render::relight`] with the
+/// transfer's [`Basis`]: trilinear, or, for a transfer baked finer, the quadratic B-spline.
 ///
-/// Trilinear interpolation, direct light included: T_ri falls off exponentially into the
-/// medium and a straight line between two nodes lies above it, but the stored T_ri is not the
-/// nodes' point value — it is fitted so that exactly this interpolation matches T_ri where the
-/// density is ([`crate::transfer::fit`]). Within a transfer voxel the fit can only follow a
-/// straight line; with the density's [`Visibility`] the direct light takes the shape of its fall
-/// from V: Ls_direct(p)·V(p)/V̂(p), V̂ the interpolation of V's own fitted node values, so a
-/// transfer that is V times a smooth field is reproduced at the density's resolution.
+/// Direct light included: T_ri falls off exponentially into the medium and a straight line
+/// between two nodes lies above it, but the stored T_ri is not the nodes' point value — it is
+/// fitted so that exactly this read-out matches T_ri where the density is
+/// ([`crate::transfer::fit`]). Within a transfer voxel a trilinear fit can only follow a straight
+/// line; with the density's [`Visibility`] the direct light takes the shape of its fall from V:
+/// Ls_direct(p)·V(p)/V̂(p), V̂ the read-out of V's own fitted node values, so a transfer that is V
+/// times a smooth field is reproduced at the density's resolution.
 pub struct TransferRadiance<'a> {
     inv_k: f32,
-    /// Per slot, direct and indirect RGB, and a last all-zero record that missing corners point
-    /// at, so a corner needs no test ([`Radiance`]).
+    basis: Basis,
+    /// Per slot, direct and indirect RGB, and a last all-zero record that missing nodes point
+    /// at, so a node needs no test ([`Radiance`]).
     nodes: &'a [[f32; 6]],
-    /// Where each transfer voxel's record is: a ray entering an interpolation cell finds its
-    /// eight corners' records there ([`TransferLayout::cell`]).
+    /// Where each transfer voxel's record is: a ray entering a window finds its nodes' records
+    /// there ([`TransferLayout::window`]).
     layout: &'a TransferLayout,
-    /// The all-zero record missing corners point at.
+    /// The all-zero record missing nodes point at.
     missing: u32,
     shaping: Option<Shaping<'a>>,
 }
@@ -457,14 +526,17 @@ const MIN_FITTED_VISIBILITY: f32 = 1e-4;
 const MAX_VISIBILITY_RATIO: f32 = 4.0;
 
 impl<'a> TransferRadiance<'a> {
-    /// `shaping`: what shapes the direct light (`None`: plain interpolation).
+    /// `basis`: how the nodes are read ([`crate::transfer::Transfer::basis`]); `shaping`: what
+    /// shapes the direct light (`None`: plain read-out).
     pub fn new(
         layout: &'a TransferLayout,
+        basis: Basis,
         radiance: &'a Radiance,
         shaping: Option<Shaping<'a>>,
     ) -> Self {
         TransferRadiance {
             inv_k: 1.0 / layout.k as f32,
+            basis,
             nodes: &radiance.nodes,
             layout,
             missing: radiance.len() as u32,
@@ -472,77 +544,95 @@ impl<'a> TransferRadiance<'a> {
         }
     }
 
-    /// Moves the weights gathered in the current cell into the radiance sum.
-    fn flush(&self, sum: &mut CellSum) {
-        if let Some(slots) = sum.cell.slots {
-            let [direct, indirect] = &mut sum.radiance;
-            add_corners(direct, &slots, &sum.direct, self.nodes, 0);
-            add_corners(indirect, &slots, &sum.indirect, self.nodes, 3);
-        }
-        sum.direct = [0.0; 8];
-        sum.indirect = [0.0; 8];
-    }
-}
-
-/// A ray's sum for [`TransferRadiance`]: the cell holding the last step, its corner records and
-/// the Σ c·(trilinear weight) of its steps per corner, for the direct light (reshaped by V) and
-/// the indirect light. A ray takes about K steps per transfer voxel, so the hash lookup and the
-/// 8 × 6 products with node data are paid once per cell crossed; a step adds only its weights.
-pub struct CellSum<'a> {
-    cell: Cell,
-    direct: [f32; 8],
-    indirect: [f32; 8],
-    radiance: [[f32; 3]; 2],
-    visibility: Option<VisibilitySampler<'a>>,
-}
-
-impl<'a> InScatter for TransferRadiance<'a> {
-    type Sum = CellSum<'a>;
-
-    fn begin(&self) -> CellSum<'a> {
-        CellSum {
-            cell: Cell::default(),
-            direct: [0.0; 8],
-            indirect: [0.0; 8],
-            radiance: [[0.0; 3]; 2],
-            visibility: self.shaping.map(|s| s.visibility.sampler()),
+    /// Moves the weights gathered in the current window into the radiance sum. Unshaped, the
+    /// direct and indirect light share one layer of weights ([`WindowSum`]).
+    #[inline(always)]
+    fn flush<const E: usize>(&self, sum: &mut WindowSum) {
+        match self.shaping {
+            None => sum
+                .window
+                .flush::<E, 6, 1>(self.nodes, [(0, &mut sum.radiance)]),
+            Some(_) => {
+                // Each layer's weights times whole records; the direct part of the one, the
+                // indirect part of the other.
+                let (mut direct, mut indirect) = ([0.0; 6], [0.0; 6]);
+                sum.window
+                    .flush::<E, 6, 2>(self.nodes, [(1, &mut direct), (0, &mut indirect)]);
+                for c in 0..3 {
+                    sum.radiance[c] += direct[c];
+                    sum.radiance[c + 3] += indirect[c + 3];
+                }
+            }
         }
     }
 
+    /// [`InScatter::add`] for a basis `E` nodes wide.
     #[inline]
-    fn add(&self, step: &Step, sum: &mut CellSum<'a>, _: &mut BrickSampler) {
+    fn add_in<const E: usize>(&self, step: &Step, sum: &mut WindowSum<'a>) {
         let (p, c) = (step.p, step.weight());
-        let (b, f) = floor_split(p * self.inv_k);
-        if sum.cell.base != Some(b) {
-            self.flush(sum);
-            sum.cell.enter(self.layout, b, self.missing);
+        let (b, axes) = self.basis.window(p * self.inv_k);
+        if sum.window.base != Some(b) {
+            self.flush::<E>(sum);
+            sum.window.enter(self.layout, b, E, self.missing);
         }
-        let w = corner_weights(f);
         let mut cd = c;
-        if let (Some(sampler), Some(slots), Some(shaping)) =
-            (sum.visibility.as_mut(), sum.cell.slots, self.shaping)
-        {
-            // The missing corner's V is 0, as its light.
-            let fitted: f32 = w
-                .iter()
-                .zip(slots)
-                .map(|(w, s)| w * shaping.fitted.get(s as usize).copied().unwrap_or(0.0))
-                .sum();
+        if let (Some(sampler), Some(shaping)) = (sum.visibility.as_mut(), self.shaping) {
+            // The missing node's V is 0, as its light.
+            let fitted = sum.window.read::<E>(&axes, |slot| {
+                shaping.fitted.get(slot as usize).copied().unwrap_or(0.0)
+            });
             if fitted > MIN_FITTED_VISIBILITY {
                 if let Some(fine) = sampler.at(p, step.rho) {
                     cd *= (fine / fitted).clamp(0.0, MAX_VISIBILITY_RATIO);
                 }
             }
         }
-        for ((d, i), w) in sum.direct.iter_mut().zip(&mut sum.indirect).zip(w) {
-            *d += cd * w;
-            *i += c * w;
+        match self.shaping {
+            Some(_) => sum.window.add::<E, 2>(&axes, [c, cd]),
+            None => sum.window.add::<E, 1>(&axes, [c]),
+        }
+    }
+}
+
+const TENT: usize = Basis::Tent.edge();
+const QUADRATIC: usize = Basis::Quadratic.edge();
+
+/// A ray's sum for [`TransferRadiance`]: the window of nodes around the last step with its
+/// steps' weights, for the indirect light (layer 0) and, where V shapes it, the direct light
+/// (layer 1); unshaped, the direct light is weighted as the indirect.
+pub struct WindowSum<'a> {
+    window: Window<2>,
+    /// Direct, then indirect RGB.
+    radiance: [f32; 6],
+    visibility: Option<VisibilitySampler<'a>>,
+}
+
+impl<'a> InScatter for TransferRadiance<'a> {
+    type Sum = WindowSum<'a>;
+
+    fn begin(&self) -> WindowSum<'a> {
+        WindowSum {
+            window: Window::default(),
+            radiance: [0.0; 6],
+            visibility: self.shaping.map(|s| s.visibility.sampler()),
         }
     }
 
-    fn total(&self, sum: &mut CellSum<'a>) -> [[f32; 3]; 2] {
-        self.flush(sum);
-        std::mem::take(&mut sum.radiance)
+    #[inline]
+    fn add(&self, step: &Step, sum: &mut WindowSum<'a>, _: &mut BrickSampler) {
+        match self.basis {
+            Basis::Tent => self.add_in::<TENT>(step, sum),
+            Basis::Quadratic => self.add_in::<QUADRATIC>(step, sum),
+        }
+    }
+
+    fn total(&self, sum: &mut WindowSum<'a>) -> [[f32; 3]; 2] {
+        match self.basis {
+            Basis::Tent => self.flush::<TENT>(sum),
+            Basis::Quadratic => self.flush::<QUADRATIC>(sum),
+        }
+        let r = std::mem::take(&mut sum.radiance);
+        [[r[0], r[1], r[2]], [r[3], r[4], r[5]]]
     }
 }
 

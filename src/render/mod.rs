@@ -137,6 +137,7 @@ pub fn render_volume<R>(
     let source = (
         march::TransferRadiance::new(
             &transfer.layout,
+            transfer.basis,
             &radiance,
             // Only the environment's light is shaped: without it the direct records are zero.
             transfer
@@ -297,6 +298,7 @@ mod tests {
             },
             lattice: None,
             shape: None,
+            basis: crate::transfer::Basis::Tent,
         };
         let c = [0.5f32, 1.0, 2.0];
         let lighting = Lighting {

@@ -281,6 +281,7 @@ mod tests {
             },
             lattice: None,
             shape: None,
+            basis: crate::transfer::Basis::Tent,
         }
     }
 

@@ -29,7 +29,9 @@ use xxhash_rust::xxh3::Xxh3;
 
 use super::packing::{self, Precision, SectionReader, SectionWriter};
 use super::shape::TransferShape;
-use super::{lattice::LatticeKind, BakeSettings, Medium, Transfer, TransferLayout, TransferLight};
+use super::{
+    lattice::LatticeKind, BakeSettings, Basis, Medium, Transfer, TransferLayout, TransferLight,
+};
 use crate::error::{Error, Result};
 use crate::render::relight::StreamRelight;
 use crate::volume::grid::{Leaf, SparseGrid, TileLevel, Transform, LEAF_VOXELS};
@@ -44,8 +46,9 @@ const MAGIC: &[u8; 12] = b"VSCTRCACHE\0\0";
 /// precision. 5: T_ri fitted over the trilinear fringe and pulled toward the footprint means
 /// (a version-4 fit could light hot pixels). 6: the visibility that shapes the direct light
 /// (`transfer::shape`), baked and stored. 7: the visibility interpolated in −ln V, and its node
-/// values fitted so.
-pub const VERSION: u32 = 7;
+/// values fitted so. 8: the basis the nodes are read with (a transfer baked finer holds quadratic
+/// B-spline coefficients).
+pub const VERSION: u32 = 8;
 /// Longest JSON header accepted: far above any real one, small enough to allocate safely.
 const MAX_HEADER: u64 = 1 << 20;
 /// Bytes of a leaf's origin and mask in the leaves section, and of a tile in the tiles section.
@@ -124,6 +127,8 @@ pub struct Header {
     /// Active tiles at the 8³, 128³ and 4096³ levels.
     pub tiles: [u64; 3],
     pub transfer_voxels: u64,
+    /// How the nodes are read between them ([`Basis`]).
+    pub basis: Basis,
     /// How the coefficients are stored.
     pub coefficients: Precision,
     /// How the leaves' density values are stored: f32, or f16 when the precision allows it and
@@ -148,7 +153,7 @@ impl Header {
     pub fn describe(&self, path: &Path, size: u64) -> String {
         let h = self;
         format!(
-        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels, {} coefficients, {} density\n  visibility  {}\n",
+        "{}: vscatter transfer cache, format {}, {}\n  source      {} (grid {:?}, {} bytes)\n  medium      sigma_t {} per world unit, albedo {}\n  bake        {} bands, 1/{} resolution, {} samples, lattice {}{}, seed {}\n  transform   scale {:?}, translation {:?}\n  density     {} leaves, tiles {:?} (8³, 128³, 4096³)\n  transfer    {} voxels read {}, {} coefficients, {} density\n  visibility  {}\n",
         path.display(),
         VERSION,
         indicatif::HumanBytes(size),
@@ -172,6 +177,7 @@ impl Header {
         h.leaves,
         h.tiles,
         h.transfer_voxels,
+        h.basis.name(),
         h.coefficients.name(),
         h.density.name(),
         match h.visibility_directions {
@@ -277,6 +283,7 @@ pub fn header(
         leaves: density.leaf_count() as u64,
         tiles: TileLevel::ALL.map(|l| density.tiles(l).count() as u64),
         transfer_voxels: transfer.layout.len() as u64,
+        basis: transfer.basis,
         coefficients: precision,
         density: match density_f16(density, precision) {
             true => Precision::F16,
@@ -847,6 +854,7 @@ fn decode(
         light,
         lattice: (!settings.single_scatter).then_some(settings.lattice),
         shape,
+        basis: header.basis,
     };
     Ok(Cache {
         header,
@@ -893,6 +901,7 @@ mod tests {
             },
             lattice: Some(LatticeKind::All),
             shape: Some(Arc::new(shape)),
+            basis: Basis::Quadratic,
         };
         let h = header(&g, &transfer, &tiny_settings(), tiny_origin(), precision);
         (g, transfer, h)
@@ -1053,6 +1062,7 @@ mod tests {
         assert_eq!(back.header, h);
         assert_eq!(back.transfer.light, t.light);
         assert_eq!(back.transfer.layout.voxels(), t.layout.voxels());
+        assert_eq!(back.transfer.basis, Basis::Quadratic);
         assert_eq!(back.density.value(IVec3::new(9, 1, 1)), 0.75);
         let (back_shape, shape) = (back.transfer.shape.unwrap(), t.shape.unwrap());
         assert_eq!(back_shape.fitted, shape.fitted);

@@ -10,7 +10,8 @@
 
 use glam::{IVec3, Vec3};
 
-use crate::volume::grid::{corner, slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
+use super::basis::{window_index, WINDOW};
+use crate::volume::grid::{slot_offset, SparseGrid, TileLevel, LEAF_VOXELS};
 use crate::volume::keys::KeyIndex;
 
 /// log2 of a tile's edge in transfer voxels: 4³ = 64 voxels, one 64-bit occupancy word.
@@ -19,17 +20,6 @@ const TILE_DIM: i32 = 1 << TILE_LOG2;
 const TILE_VOXELS: usize = 1 << (3 * TILE_LOG2);
 /// Marks a tile position with no transfer voxel.
 const EMPTY: u32 = u32::MAX;
-/// Offset of corner `n` ([`corner`]) from a cell's lower corner in a tile's slot array.
-const CELL_OFFSETS: [usize; 8] = {
-    let mut o = [0; 8];
-    let mut n = 0;
-    while n < 8 {
-        o[n] = ((n >> 2) << (2 * TILE_LOG2)) | (((n >> 1) & 1) << TILE_LOG2) | (n & 1);
-        n += 1;
-    }
-    o
-};
-
 /// Which transfer voxels exist and where their data lives.
 #[derive(Clone)]
 pub struct TransferLayout {
@@ -187,28 +177,24 @@ impl TransferLayout {
         (s != EMPTY).then_some(s as usize)
     }
 
-    /// The slots of the eight corners `b + {0,1}³` of an interpolation cell, in the order of
-    /// [`crate::volume::grid::corner`], `missing` where a corner has no transfer voxel; `None`
-    /// when none has. A cell inside one tile (27 of 64 cell positions per tile, and most of
-    /// the cells a ray crosses) costs one lookup.
+    /// The slots of the nodes `b + [0, edge)³` a point reads ([`super::Basis::window`]; `edge` ≤
+    /// [`super::basis::MAX_EDGE`]), node `b + (x, y, z)` at [`window_index`], `missing` where a
+    /// node has no transfer voxel and in the entries past `edge`³; `None` when no node has.
     #[inline]
-    pub fn cell(&self, b: IVec3, missing: u32) -> Option<[u32; 8]> {
-        let mut slots = [EMPTY; 8];
-        if (b & (TILE_DIM - 1)).cmplt(IVec3::splat(TILE_DIM - 1)).all() {
-            let tile = &self.tile_slots[self.tiles.get(b >> TILE_LOG2)? as usize];
-            let base = tile_local(b);
-            for (n, s) in slots.iter_mut().enumerate() {
-                *s = tile[base + CELL_OFFSETS[n]];
-            }
-        } else {
-            for (n, s) in slots.iter_mut().enumerate() {
-                *s = self.slot(b + corner(n)).map_or(EMPTY, |slot| slot as u32);
+    pub fn window(&self, b: IVec3, edge: usize, missing: u32) -> Option<[u32; WINDOW]> {
+        let mut slots = [missing; WINDOW];
+        let mut any = false;
+        for x in 0..edge {
+            for y in 0..edge {
+                for z in 0..edge {
+                    if let Some(s) = self.slot(b + IVec3::new(x as i32, y as i32, z as i32)) {
+                        slots[window_index(edge, x, y, z)] = s as u32;
+                        any = true;
+                    }
+                }
             }
         }
-        slots
-            .iter()
-            .any(|&s| s != EMPTY)
-            .then(|| slots.map(|s| if s == EMPTY { missing } else { s }))
+        any.then_some(slots)
     }
 
     /// Density index-space position of transfer voxel `v`.

@@ -4,7 +4,9 @@
 
 use indicatif::HumanBytes as human;
 
-use super::{lattice, lattice::LatticeKind, refine, single, BakeSettings, Medium, TransferLayout};
+use super::{
+    fit, lattice, lattice::LatticeKind, refine, single, BakeSettings, Basis, Medium, TransferLayout,
+};
 use crate::error::{Error, Result};
 use crate::math::krylov;
 use crate::volume::grid::{TileLevel, LEAF_LOG2};
@@ -82,7 +84,8 @@ impl MemoryEstimate {
         //   single-scattering bake's visibility, which draws the footprint means' starts;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
-        let rows = n * (FIT_ROW_BYTES + threads as u64 * FIT_SOLVE_BYTES);
+        let rows_of = |basis| n * (fit::row_bytes(basis) + threads as u64 * FIT_SOLVE_BYTES);
+        let rows = rows_of(Basis::Tent);
         let (single, fit) = match footprints {
             true => (
                 2 * one + sets + far + visibility.held,
@@ -109,7 +112,7 @@ impl MemoryEstimate {
         let (single, lattice) = match refined {
             Some(r) => (
                 single.max(r.single + sets / refine::FINE_SAMPLE_SHARE as u64 + far),
-                r.lattice.max(r.held + 2 * one + rows),
+                r.lattice.max(r.held + 2 * one + rows_of(refine::BASIS)),
             ),
             None => (single, lattice),
         };
@@ -235,8 +238,6 @@ const LINK_PLACE_BYTES: u64 = 4;
 const TRANSPORT_ROW_BYTES: u64 = lattice::CHUNK as u64 * 4;
 /// Bytes of a row of a sun's transport state: its one f32.
 const SUN_TRANSPORT_ROW_BYTES: u64 = 4;
-/// Bytes per node of the fit's mass-matrix row: its weight, and 27 slots and weights.
-const FIT_ROW_BYTES: u64 = 8 + 27 * (4 + 8);
 /// Bytes per node of one column's conjugate-gradient solve: ten f64 vectors.
 const FIT_SOLVE_BYTES: u64 = 10 * 8;
 

@@ -5,7 +5,9 @@
 pub mod cache;
 pub(crate) mod coefficients;
 pub use coefficients::Coefficients;
-mod fit;
+pub mod basis;
+pub use basis::Basis;
+pub(crate) mod fit;
 pub use fit::fitted_visibility;
 pub mod lattice;
 mod layout;
@@ -48,6 +50,8 @@ pub struct Transfer {
     pub lattice: Option<lattice::LatticeKind>,
     /// What shapes the direct light between nodes (`None`: plain interpolation).
     pub shape: Option<std::sync::Arc<shape::TransferShape>>,
+    /// How the node values are read between nodes.
+    pub basis: Basis,
 }
 
 /// What a transfer holds of its light.
@@ -338,7 +342,15 @@ pub fn bake(
                         Some(fine) => {
                             let bar = progress.phase("fit", n as u64);
                             let back = |values: &[f32], coeffs| {
-                                fit::fitted_from_finer(&field.grid, &layout, fine, values, coeffs)
+                                fit::fitted_from_finer(
+                                    &field.grid,
+                                    &layout,
+                                    refine::BASIS,
+                                    fine,
+                                    values,
+                                    coeffs,
+                                    refine::FIT_BACK_REGULARISATION,
+                                )
                             };
                             let fitted = (back(&point, coeffs), back(&light, carried * carried));
                             bar.finish_and_clear();
@@ -386,6 +398,7 @@ pub fn bake(
             fit::least_squares(
                 &field.grid,
                 &layout,
+                Basis::Tent,
                 &mut t_ri,
                 coeffs,
                 fit::FIT_REGULARISATION,
@@ -411,6 +424,10 @@ pub fn bake(
         },
         lattice: (!settings.single_scatter).then_some(settings.lattice),
         shape,
+        basis: match refined {
+            Some(_) => refine::BASIS,
+            None => Basis::Tent,
+        },
     };
     (transfer, stats)
 }

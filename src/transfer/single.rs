@@ -11,6 +11,7 @@ use glam::{IVec3, Quat, Vec3};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
+use super::basis::Basis;
 use super::layout::TransferLayout;
 use crate::light::sh;
 use crate::volume::transmittance::{FarField, OpticalDepth, MIN_TRANSMITTANCE};
@@ -170,7 +171,7 @@ pub fn bake_single(
 ) -> Vec<f32> {
     let coeffs = settings.bands * settings.bands;
     let sets = direction_sets(settings.samples, settings.bands, settings.seed);
-    let quadrature = super::fit::Quadrature::new(layout.k);
+    let quadrature = super::fit::Quadrature::new(layout.k, Basis::Tent);
     let mut by_set: Vec<Vec<u32>> = vec![Vec::new(); DIRECTION_SETS];
     for (slot, v) in layout.voxels().iter().enumerate() {
         by_set[set_of(*v, settings.seed)].push(slot as u32);
@@ -229,7 +230,7 @@ pub fn bake_single(
                         // there too brings the footprint means' DC closer to a plain run's (−0.3
                         // against −0.9 % on the torus at σt 1) but puts the images 1.5–3 points
                         // darker against the path tracer (studio, σt 0.36–1).
-                        let tent = |q: Vec3| super::fit::tent(q - x, k);
+                        let tent = |q: Vec3| Basis::Tent.at(q - x, k);
                         let step = settings.chord_step;
                         let importance = visibility
                             .as_mut()

@@ -42,9 +42,25 @@ fn furnace_deviation(t: &Transfer, select: impl Fn(IVec3) -> bool) -> (f32, usiz
         t.coefficients().unwrap().0.to_f32(n),
         t.coefficients().unwrap().1.to_f32(n),
     );
-    for (slot, v) in t.layout.voxels().iter().enumerate() {
+    // The DC coefficient as the renderer reads it at a node's point, with the transfer's basis.
+    let read = |coeffs: &[f32], v: IVec3| -> f32 {
+        let (first, w) = t.basis.window(v.as_vec3());
+        let e = t.basis.edge() as i32;
+        let mut sum = 0.0;
+        for x in 0..e {
+            for y in 0..e {
+                for z in 0..e {
+                    let weight = w[x as usize].x * w[y as usize].y * w[z as usize].z;
+                    let node = first + IVec3::new(x, y, z);
+                    sum += weight * t.layout.slot(node).map_or(0.0, |s| coeffs[s * n]);
+                }
+            }
+        }
+        sum
+    };
+    for v in t.layout.voxels() {
         if select(*v) {
-            let dev = (t_ri[slot * n] + f_ms[slot * n]) / full - 1.0;
+            let dev = (read(&t_ri, *v) + read(&f_ms, *v)) / full - 1.0;
             worst = if dev.abs() > worst.abs() { dev } else { worst };
             count += 1;
         }
@@ -115,14 +131,14 @@ fn white_furnace_where_the_volume_is_optically_thick() {
     // across, σt 2 gives 28; no transfer voxel lies two inside a tube at K = 3 or 6, so K = 2.
     // Measured: within 0.1 % (the lattice is driven by the environment at its boundary, module
     // doc of `lattice`); it was −17 % (cloud) before. Both bakes are on finer cells, fitted back
-    // (`refine`). Every voxel inside, surface included: cloud −1.4 %, torus +4.0 % (where T_ri
-    // and the lattice's own unscattered light differ; on the transfer's own cells −4.7 % and
-    // −8.5 %); those limits are regression guards just above what is achieved. The torus voxels of one
-    // ring facing the other across the gap, lit across it through gap-jumping links: +2.7 % on
-    // the transfer's cells, +3.3 % baked on cells of 1 and fitted back (`refine`: 3.5 optical
-    // depths per transfer voxel), whose 256×144 furnace render is closer, 0.61 % (max 4.4 %)
-    // against 1.12 % (max 8.0 %).
-    for (file, sigma_t, k, surface) in [("cloud.vdb", 1.0, 6, 0.02), ("torus.vdb", 2.0, 2, 0.045)] {
+    // as quadratic B-splines (`refine`), and are read here as the renderer reads them. Every voxel
+    // inside, surface included: cloud −2.5 %, torus +5.0 % (where T_ri and the lattice's own
+    // unscattered light differ; on the transfer's own cells −4.7 % and −8.5 %); those limits are
+    // regression guards just above what is achieved. The torus voxels of one ring facing the
+    // other across the gap, lit across it through gap-jumping links: +2.7 % on the transfer's
+    // cells, +4.2 % baked on cells of 1 and fitted back (3.5 optical depths per transfer voxel),
+    // whose 256×144 furnace render is closer, 0.71 % (max 6.8 %) against 1.12 % (max 8.0 %).
+    for (file, sigma_t, k, surface) in [("cloud.vdb", 1.0, 6, 0.03), ("torus.vdb", 2.0, 2, 0.055)] {
         let (d, t) = furnace_bake(file, sigma_t, k);
         let (worst, count) = furnace_deviation(&t, inside_by(&d, k, 2));
         assert!(count > 40, "{file}: only {count} voxels two inside");
@@ -139,7 +155,7 @@ fn white_furnace_where_the_volume_is_optically_thick() {
             };
             let (worst, count) = furnace_deviation(&t, facing);
             assert!(count > 100, "only {count} voxels face the other ring");
-            assert!(worst.abs() < 0.035, "furnace off by {worst} across the gap");
+            assert!(worst.abs() < 0.045, "furnace off by {worst} across the gap");
         }
     }
 }

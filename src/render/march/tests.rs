@@ -387,7 +387,7 @@ fn transfer_radiance_interpolates_slots() {
         })
         .collect();
     let radiance = Radiance::new(&direct, &vec![[0.25; 3]; layout.len()]);
-    let src = TransferRadiance::new(&layout, &radiance, None);
+    let src = TransferRadiance::new(&layout, Basis::Tent, &radiance, None);
     let at = |q: Vec3| ray_sum(&src, &[step_at(q, 1.0, 1.0)]);
     // The layout's own trilinear weights, direct red.
     let want = |q: Vec3| -> f32 {
@@ -429,6 +429,47 @@ fn transfer_radiance_interpolates_slots() {
         d[0]
     );
     assert!((i[2] - 0.25 * 3.75).abs() < 1e-6);
+}
+
+#[test]
+fn quadratic_b_spline_radiance_reproduces_a_linear_field() {
+    // Node values linear in the node's x (red = x, green 1) read as quadratic B-splines give the
+    // linear field itself wherever the 27 nodes around a point exist: red = x / K. Steps that
+    // leave a window and come back to it lose no weight.
+    let g = unit_tile(Transform::default(), 1.0);
+    let layout = TransferLayout::build(&g, 6);
+    let direct: Vec<[f32; 3]> = layout
+        .voxels()
+        .iter()
+        .map(|v| [v.x as f32, 1.0, 0.0])
+        .collect();
+    let radiance = Radiance::new(&direct, &vec![[0.25; 3]; layout.len()]);
+    let src = TransferRadiance::new(&layout, Basis::Quadratic, &radiance, None);
+    let points = [
+        Vec3::new(33.0, 20.5, 70.25),
+        Vec3::new(35.9, 20.5, 70.25),
+        Vec3::new(36.1, 40.0, 11.0),
+        Vec3::new(60.0, 9.7, 30.0),
+    ];
+    for q in points {
+        let [d, i] = ray_sum(&src, &[step_at(q, 1.0, 1.0)]);
+        assert!((d[0] - q.x / 6.0).abs() < 1e-4, "{q}: {d:?}");
+        assert!((d[1] - 1.0).abs() < 1e-5 && (i[0] - 0.25).abs() < 1e-6);
+    }
+    let steps = [
+        (points[0], 0.5),
+        (points[1], 0.25),
+        (points[2], 2.0),
+        (points[0], 1.0),
+        (points[3], 0.125),
+    ];
+    let [d, _] = ray_sum(&src, &steps.map(|(q, c)| step_at(q, 1.0, c)));
+    let expect: f32 = steps.iter().map(|&(q, c)| c * q.x / 6.0).sum();
+    assert!(
+        (d[0] - expect).abs() < 1e-4 * expect,
+        "{} vs {expect}",
+        d[0]
+    );
 }
 
 #[test]
@@ -500,13 +541,14 @@ fn a_transfer_shaped_like_the_visibility_is_reproduced_at_the_density_resolution
         let radiance = Radiance::new(&direct, &vec![[0.5; 3]; layout.len()]);
         let shaped = TransferRadiance::new(
             &layout,
+            Basis::Tent,
             &radiance,
             Some(Shaping {
                 visibility: &shape.visibility,
                 fitted: &shape.fitted,
             }),
         );
-        let plain = TransferRadiance::new(&layout, &radiance, None);
+        let plain = TransferRadiance::new(&layout, Basis::Tent, &radiance, None);
         let at = |src: &TransferRadiance, q: Vec3| {
             ray_sum(src, &[step_at(q, field.grid.sample_index(q), 1.0)])
         };
