@@ -344,17 +344,16 @@ pub const fn stencil(basis: Basis) -> usize {
 
 /// Bytes per node of the fit's mass-matrix row under `basis` ([`Row`]).
 pub const fn row_bytes(basis: Basis) -> u64 {
-    (8 + stencil(basis) * (4 + 8)) as u64
+    (16 + stencil(basis) * (4 + 8)) as u64
 }
 
-/// Marks a stencil entry with no node (no transfer voxel there, or no weight).
-const NO_NODE: u32 = u32::MAX;
-
-/// One node's row of the mass matrix: S_n and the M_nm toward each of the `S` stencil
-/// neighbours m ([`stencil`]). Fixed arrays, not a list per row: a million rows allocated one by
-/// one stayed in the allocator's heap after the fit and under every later phase of a bake.
+/// One node's row of the mass matrix: S_n and the M_nm toward its stencil neighbours m
+/// ([`stencil`]: at most `S`), the `len` that exist and have weight first. Fixed arrays, not a
+/// list per row: a million rows allocated one by one stayed in the allocator's heap after the fit
+/// and under every later phase of a bake.
 struct Row<const S: usize> {
     mass: f64,
+    len: usize,
     nodes: [u32; S],
     weights: [f64; S],
 }
@@ -362,10 +361,9 @@ struct Row<const S: usize> {
 impl<const S: usize> Row<S> {
     /// The (slot, M_nm) entries, in stencil order.
     fn entries(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
-        self.nodes
+        self.nodes[..self.len]
             .iter()
-            .zip(&self.weights)
-            .filter(|(m, _)| **m != NO_NODE)
+            .zip(&self.weights[..self.len])
             .map(|(m, a)| (*m, *a))
     }
 
@@ -401,18 +399,20 @@ impl<const S: usize> Row<S> {
                 }
             }
         }
-        let mut nodes = [NO_NODE; S];
-        for (i, (node, m)) in nodes.iter_mut().zip(&stencil).enumerate() {
+        let (mut nodes, mut weights, mut len) = ([0; S], [0.0; S], 0);
+        for (i, m) in stencil.into_iter().enumerate() {
             let i = i as i32;
             let d = IVec3::new(i / (width * width), (i / width) % width, i % width) - reach;
-            if let (true, Some(s)) = (*m > 0.0, layout.slot(v + d)) {
-                *node = s as u32;
+            if let (true, Some(s)) = (m > 0.0, layout.slot(v + d)) {
+                (nodes[len], weights[len]) = (s as u32, m);
+                len += 1;
             }
         }
         Row {
             mass: previous,
+            len,
             nodes,
-            weights: stencil,
+            weights,
         }
     }
 }
@@ -462,24 +462,25 @@ pub fn fitted_visibility(
     means
 }
 
-/// Least-squares node values for `basis` of a field given at the nodes of a finer layout `fine`
-/// (`fine.len() × coeffs` point values, read trilinearly between them), fitted as T_ri is: each
-/// node's footprint mean of the field over ρ·w_n, exact from the quadrature's points, then
+/// Least-squares node values for `basis` of fields given at the nodes of a finer layout `fine`
+/// (each `fine.len() × coeffs` point values, read trilinearly between them), fitted as T_ri is:
+/// each node's footprint mean of a field over ρ·w_n, exact from the quadrature's points, then
 /// [`least_squares`] pulled by `lambda`. The light baked on cells finer than the transfer's comes
 /// back to the transfer's nodes this way, so that their read-out matches it where the density is
 /// ([`crate::transfer::refine`]).
 ///
 /// A node's mean is Σ_b G_b·F_b over the fine nodes b around it, G_b = Σ_p ρ·w_n·u_b(p) with u_b
-/// the fine nodes' trilinear weights: gathered once per point for all coefficients.
-pub fn fitted_from_finer(
+/// the fine nodes' trilinear weights: gathered once per point for every field's coefficients,
+/// which are fitted side by side, so the mass matrix is built once.
+pub fn fitted_from_finer<const F: usize>(
     density: &SparseGrid,
     layout: &TransferLayout,
     basis: Basis,
     fine: &TransferLayout,
-    values: &[f32],
-    coeffs: usize,
+    fields: [(&[f32], usize); F],
     lambda: f64,
-) -> Vec<f32> {
+) -> [Vec<f32>; F] {
+    let coeffs: usize = fields.iter().map(|f| f.1).sum();
     let quadrature = Quadrature::new(layout.k, basis);
     let (k, kf) = (layout.k, fine.k);
     let mut means: Vec<f32> = layout
@@ -529,7 +530,9 @@ pub fn fitted_from_finer(
                         let b = IVec3::new(x, y, z);
                         let g = gathered[at(b)];
                         if let (true, Some(slot)) = (g > 0.0, fine.slot(b)) {
-                            let f = &values[slot * coeffs..][..coeffs];
+                            let f = fields
+                                .iter()
+                                .flat_map(|(values, c)| &values[slot * c..][..*c]);
                             sum.iter_mut().zip(f).for_each(|(s, f)| *s += g * *f as f64);
                         }
                     }
@@ -542,7 +545,17 @@ pub fn fitted_from_finer(
         })
         .collect();
     least_squares(density, layout, basis, &mut means, coeffs, lambda);
-    means
+    // Each field's columns apart again.
+    let mut first = 0;
+    fields.map(|(_, c)| {
+        let columns = first..first + c;
+        first += c;
+        means
+            .chunks_exact(coeffs)
+            .flat_map(|node| &node[columns.clone()])
+            .copied()
+            .collect()
+    })
 }
 
 /// Least-squares node values for `basis` from the footprint means `means` (`layout.len() ×
@@ -556,18 +569,40 @@ pub fn least_squares(
     coeffs: usize,
     lambda: f64,
 ) {
+    const TENT: usize = stencil(Basis::Tent);
+    const QUADRATIC: usize = stencil(Basis::Quadratic);
+    const TENT_BLOCK: usize = block(Basis::Tent);
+    const QUADRATIC_BLOCK: usize = block(Basis::Quadratic);
     match basis {
-        Basis::Tent => {
-            solve::<{ stencil(Basis::Tent) }>(density, layout, basis, means, coeffs, lambda)
-        }
+        Basis::Tent => solve::<TENT, TENT_BLOCK>(density, layout, basis, means, coeffs, lambda),
         Basis::Quadratic => {
-            solve::<{ stencil(Basis::Quadratic) }>(density, layout, basis, means, coeffs, lambda)
+            solve::<QUADRATIC, QUADRATIC_BLOCK>(density, layout, basis, means, coeffs, lambda)
         }
     }
 }
 
-/// [`least_squares`] with rows of `S` entries ([`stencil`] of `basis`).
-fn solve<const S: usize>(
+/// Columns (SH coefficients) the fit solves together under `basis`: the mass matrix's rows are
+/// read once per block of them in each iteration, not once per column, and the block's vectors
+/// take as many times one column's memory. The B-spline's rows of 125 entries make its fit
+/// bound by reading them: baking the bench cloud at σt 1.6 (its fit back on B-spline rows),
+/// blocks of 1 / 4 / 8 / 16 columns took 15.4 / 10.8 / 9.9 / 12.5 s. The tent's rows of 27 are
+/// read in a quarter of the time, and its fits are the large ones (footprint means over every
+/// transfer voxel of a bake), so it solves two columns at a time.
+pub const fn block(basis: Basis) -> usize {
+    match basis {
+        Basis::Tent => 2,
+        Basis::Quadratic => 8,
+    }
+}
+
+/// Bytes per node of the conjugate-gradient solve of one block of columns under `basis`
+/// ([`block`]): four f64 vectors per column.
+pub const fn solve_bytes(basis: Basis) -> u64 {
+    (4 * 8 * block(basis)) as u64
+}
+
+/// [`least_squares`] with rows of `S` entries ([`stencil`] of `basis`), `B` columns at a time.
+fn solve<const S: usize, const B: usize>(
     density: &SparseGrid,
     layout: &TransferLayout,
     basis: Basis,
@@ -583,84 +618,133 @@ fn solve<const S: usize>(
         .collect();
     let n = rows.len();
     let free: Vec<bool> = rows.iter().map(|r| r.mass > 0.0).collect();
-    let diagonal: Vec<f64> = rows
+    // The Jacobi preconditioner, 0 on the fixed nodes so that they stay out of the search.
+    let inverse_diagonal: Vec<f64> = rows
         .iter()
         .enumerate()
-        .map(|(s, r)| {
-            let m = r.entries().find(|e| e.0 as usize == s).map_or(1.0, |e| e.1);
-            m + lambda * r.mass
+        .map(|(s, r)| match free[s] {
+            true => {
+                let m = r.entries().find(|e| e.0 as usize == s).map_or(1.0, |e| e.1);
+                1.0 / (m + lambda * r.mass)
+            }
+            false => 0.0,
         })
         .collect();
-    // y = (M + λ·S)·x over the free nodes, S the diagonal of the nodes' masses.
-    let apply = |x: &[f64], y: &mut [f64]| {
+    // y = (M + λ·S)·x over the free nodes, S the diagonal of the nodes' masses, for a block of
+    // columns at once: a row is read once for all of them.
+    let apply = |x: &[[f64; B]], y: &mut [[f64; B]]| {
         for (s, (yi, r)) in y.iter_mut().zip(&rows).enumerate() {
-            *yi = match free[s] {
-                true => {
-                    let mx: f64 = r.entries().map(|(m, a)| a * x[m as usize]).sum();
-                    mx + lambda * r.mass * x[s]
+            *yi = [0.0; B];
+            if free[s] {
+                for (m, a) in r.entries() {
+                    for (y, x) in yi.iter_mut().zip(&x[m as usize]) {
+                        *y += a * x;
+                    }
                 }
-                false => 0.0,
-            };
+                for (y, x) in yi.iter_mut().zip(&x[s]) {
+                    *y += lambda * r.mass * x;
+                }
+            }
         }
     };
-    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
-    // Each column is read from `means` when its solve starts and written back when it ends
-    // (under a lock, one column's copy), so the fit holds the columns in flight, not a second copy
-    // of every coefficient in f64.
+    // Σ_s a·b·weight(s) per column.
+    let dot = |a: &[[f64; B]], b: &[[f64; B]], weight: &dyn Fn(usize) -> f64| {
+        let mut sum = [0.0; B];
+        for (s, (a, b)) in a.iter().zip(b).enumerate() {
+            let w = weight(s);
+            for ((sum, a), b) in sum.iter_mut().zip(a).zip(b) {
+                *sum += a * b * w;
+            }
+        }
+        sum
+    };
+    let preconditioned = |s: usize| inverse_diagonal[s];
+    // Each block of columns is read from `means` when its solve starts and written back when it
+    // ends (under a lock, one block's copy), so the fit holds the blocks in flight, not a second
+    // copy of every coefficient in f64.
     let means = std::sync::Mutex::new(means);
-    (0..coeffs).into_par_iter().for_each(|c| {
-        let mean: Vec<f64> = {
-            let means = means.lock().unwrap_or_else(|e| e.into_inner());
-            (0..n).map(|s| means[s * coeffs + c] as f64).collect()
-        };
-        // Fixed nodes enter the free rows' equations as known values.
-        let fixed: Vec<f64> = (0..n)
-            .map(|s| if free[s] { 0.0 } else { mean[s] })
-            .collect();
-        let mut known = vec![0.0; n];
-        apply(&fixed, &mut known);
-        let b: Vec<f64> = (0..n)
-            .map(|s| match free[s] {
-                true => (1.0 + lambda) * rows[s].mass * mean[s] - known[s],
+    let blocks: Vec<std::ops::Range<usize>> = (0..coeffs)
+        .step_by(B)
+        .map(|c| c..(c + B).min(coeffs))
+        .collect();
+    blocks.into_par_iter().for_each(|columns| {
+        let column = |values: &[f32], s: usize| -> [f64; B] {
+            std::array::from_fn(|l| match columns.start + l < columns.end {
+                true => values[s * coeffs + columns.start + l] as f64,
                 false => 0.0,
             })
-            .collect();
-        // Start from the means: already close, as the mass matrix is diagonally dominant.
-        let mut x: Vec<f64> = (0..n).map(|s| mean[s] - fixed[s]).collect();
-        let mut residual = vec![0.0; n];
-        apply(&x, &mut residual);
-        residual.iter_mut().zip(&b).for_each(|(r, b)| *r = b - *r);
-        let precondition = |r: &[f64]| -> Vec<f64> {
-            (0..n)
-                .map(|s| if free[s] { r[s] / diagonal[s] } else { 0.0 })
-                .collect()
         };
-        let mut z = precondition(&residual);
-        let mut p = z.clone();
-        let mut rz = dot(&residual, &z);
-        let mut ap = vec![0.0; n];
+        // x: a free node's value, starting from its mean (already close, as the mass matrix is
+        // diagonally dominant); `fixed`: a fixed node's, entering the free rows' equations as
+        // known values.
+        let (mut x, mut residual) = {
+            let means = means.lock().unwrap_or_else(|e| e.into_inner());
+            let x: Vec<[f64; B]> = (0..n).map(|s| column(&means, s)).collect();
+            (x, vec![[0.0; B]; n])
+        };
+        // r = (1 + λ)·S·mean − (M + λ·S)·x over the free rows, x holding the fixed nodes too;
+        // then the fixed nodes leave x, and their part of the products stays in r.
+        apply(&x, &mut residual);
+        for (s, r) in residual.iter_mut().enumerate() {
+            for (r, x) in r.iter_mut().zip(&x[s]) {
+                *r = match free[s] {
+                    true => (1.0 + lambda) * rows[s].mass * x - *r,
+                    false => 0.0,
+                };
+            }
+        }
+        for (s, x) in x.iter_mut().enumerate() {
+            if !free[s] {
+                *x = [0.0; B];
+            }
+        }
+        // z = D⁻¹·r is read as it is needed, not kept.
+        let mut p: Vec<[f64; B]> = residual
+            .iter()
+            .enumerate()
+            .map(|(s, r)| r.map(|r| r * inverse_diagonal[s]))
+            .collect();
+        let mut rz = dot(&residual, &residual, &preconditioned);
+        let mut ap = vec![[0.0; B]; n];
+        // A column stops where its search runs out (p·Ap or r·z no longer positive).
+        let mut running = [true; B];
         for _ in 0..CG_ITERATIONS {
             apply(&p, &mut ap);
-            let pap = dot(&p, &ap);
-            if pap <= 0.0 || rz <= 0.0 {
+            let pap = dot(&p, &ap, &|_| 1.0);
+            let alpha: [f64; B] = std::array::from_fn(|l| {
+                running[l] &= pap[l] > 0.0 && rz[l] > 0.0;
+                if running[l] {
+                    rz[l] / pap[l]
+                } else {
+                    0.0
+                }
+            });
+            if !running.contains(&true) {
                 break;
             }
-            let alpha = rz / pap;
             for s in 0..n {
-                x[s] += alpha * p[s];
-                residual[s] -= alpha * ap[s];
+                for l in 0..B {
+                    x[s][l] += alpha[l] * p[s][l];
+                    residual[s][l] -= alpha[l] * ap[s][l];
+                }
             }
-            z = precondition(&residual);
-            let rz_next = dot(&residual, &z);
-            let beta = rz_next / rz;
+            let rz_next = dot(&residual, &residual, &preconditioned);
+            let beta: [f64; B] = std::array::from_fn(|l| match running[l] {
+                true => rz_next[l] / rz[l],
+                false => 0.0,
+            });
             rz = rz_next;
-            for s in 0..n {
-                p[s] = z[s] + beta * p[s];
+            for (s, (p, r)) in p.iter_mut().zip(&residual).enumerate() {
+                for l in 0..B {
+                    p[l] = r[l] * inverse_diagonal[s] + beta[l] * p[l];
+                }
             }
         }
         let mut means = means.lock().unwrap_or_else(|e| e.into_inner());
-        for s in 0..n {
-            means[s * coeffs + c] = (x[s] + fixed[s]) as f32;
+        for (s, x) in x.iter().enumerate().filter(|(s, _)| free[*s]) {
+            for (l, c) in columns.clone().enumerate() {
+                means[s * coeffs + c] = x[l] as f32;
+            }
         }
     });
 }
@@ -769,7 +853,11 @@ mod tests {
             .collect();
         for basis in [Basis::Tent, Basis::Quadratic] {
             let lambda = FIT_REGULARISATION;
-            let fitted = fitted_from_finer(&density, &layout, basis, &fine, &values, 2, lambda);
+            let halves: [Vec<f32>; 2] =
+                std::array::from_fn(|h| values.iter().skip(h).step_by(2).copied().collect());
+            let fields = [(&halves[0][..], 1), (&halves[1][..], 1)];
+            let [a, b] = fitted_from_finer(&density, &layout, basis, &fine, fields, lambda);
+            let fitted: Vec<f32> = a.iter().zip(&b).flat_map(|(a, b)| [*a, *b]).collect();
             let reach = 2 * basis.reach(4);
             let mut checked = 0;
             for (v, got) in layout.voxels().iter().zip(fitted.chunks_exact(2)) {

@@ -84,7 +84,8 @@ impl MemoryEstimate {
         //   single-scattering bake's visibility, which draws the footprint means' starts;
         let sets = (single::DIRECTION_SETS * settings.samples) as u64 * c * 4;
         // - the fit: the mass matrix's rows and a CG solve's vectors a thread, beside both;
-        let rows_of = |basis| n * (fit::row_bytes(basis) + threads as u64 * FIT_SOLVE_BYTES);
+        let rows_of =
+            |basis| n * (fit::row_bytes(basis) + threads as u64 * fit::solve_bytes(basis));
         let rows = rows_of(Basis::Tent);
         let (single, fit) = match footprints {
             true => (
@@ -112,7 +113,9 @@ impl MemoryEstimate {
         let (single, lattice) = match refined {
             Some(r) => (
                 single.max(r.single + sets / refine::FINE_SAMPLE_SHARE as u64 + far),
-                r.lattice.max(r.held + 2 * one + rows_of(refine::BASIS)),
+                // The two layers' fitted columns side by side, then apart.
+                r.lattice
+                    .max(r.held + 2 * (one + light) + rows_of(refine::BASIS)),
             ),
             None => (single, lattice),
         };
@@ -238,8 +241,6 @@ const LINK_PLACE_BYTES: u64 = 4;
 const TRANSPORT_ROW_BYTES: u64 = lattice::CHUNK as u64 * 4;
 /// Bytes of a row of a sun's transport state: its one f32.
 const SUN_TRANSPORT_ROW_BYTES: u64 = 4;
-/// Bytes per node of one column's conjugate-gradient solve: ten f64 vectors.
-const FIT_SOLVE_BYTES: u64 = 10 * 8;
 
 /// One transport's state beside the links: per node its fluence, emission and next emission and
 /// the fluence before the last generation (for the tail), and per reflecting cell a buffer per

@@ -341,20 +341,17 @@ pub fn bake(
                     let (t_ri, light) = match &fine {
                         Some(fine) => {
                             let bar = progress.phase("fit", n as u64);
-                            let back = |values: &[f32], coeffs| {
-                                fit::fitted_from_finer(
-                                    &field.grid,
-                                    &layout,
-                                    refine::BASIS,
-                                    fine,
-                                    values,
-                                    coeffs,
-                                    refine::FIT_BACK_REGULARISATION,
-                                )
-                            };
-                            let fitted = (back(&point, coeffs), back(&light, carried * carried));
+                            let fields = [(&point[..], coeffs), (&light[..], carried * carried)];
+                            let [t_ri, light] = fit::fitted_from_finer(
+                                &field.grid,
+                                &layout,
+                                refine::BASIS,
+                                fine,
+                                fields,
+                                refine::FIT_BACK_REGULARISATION,
+                            );
                             bar.finish_and_clear();
-                            fitted
+                            (t_ri, light)
                         }
                         None => (point, light),
                     };
