@@ -1,24 +1,26 @@
 //! Node values of T_ri fitted to what the renderer does with them: least squares over the density.
 //!
-//! The renderer interpolates a transfer voxel's radiance trilinearly between nodes K voxels apart,
-//! and only where there is density. A node's *point* value T_ri(x_n, ω) is the wrong thing to
-//! interpolate across a thin structure: along each direction T_ri = e^{−τ} bends with the path
-//! length through the medium, so the straight line between two nodes lies far above it, and a
-//! node in the empty apron next to a tube sees the environment almost unshadowed while the tube
-//! it lights does not. Measured against the path tracer (torus, σt 0.08, K = 6, single
-//! scattering) the point values were +4.7 % too bright on average even with geometric
-//! interpolation of the brightness, which corrects the sum over directions but not each one.
+//! The renderer reads a transfer voxel's radiance between nodes K voxels apart with the
+//! transfer's [`Basis`] (trilinearly, below; a transfer baked finer as quadratic B-splines, the
+//! same sums with that basis's functions as w_n), and only where there is density. A node's
+//! *point* value T_ri(x_n, ω) is the wrong thing to interpolate across a thin structure: along
+//! each direction T_ri = e^{−τ} bends with the path length through the medium, so the straight
+//! line between two nodes lies far above it, and a node in the empty apron next to a tube sees
+//! the environment almost unshadowed while the tube it lights does not. Measured against the
+//! path tracer (torus, σt 0.08, K = 6, single scattering) the point values were +4.7 % too
+//! bright on average even with geometric interpolation of the brightness, which corrects the sum
+//! over directions but not each one.
 //!
 //! So the stored values L_n minimise the density-weighted squared error of the interpolant,
 //! Σ_p ρ(p)·|Σ_n w_n(p)·L_n − T_ri(p)|² over the points p of a [`Quadrature`] (ρ trilinear, as
 //! the renderer samples it), w_n the trilinear weights — the error the march makes, sample by
 //! sample — plus a pull toward each node's footprint mean ([`FIT_REGULARISATION`]). The normal
-//! equations are (M + λ·S)·L = (1 + λ)·b with M_nm = Σ_p ρ w_n w_m (a 27-point stencil, the same
-//! for every SH coefficient), S the diagonal of S_n = Σ_p ρ w_n and b_n = Σ_p ρ w_n T_ri(p) =
-//! S_n·t̄_n, t̄_n the mean of T_ri over the distribution ρ·w_n. `single` estimates t̄_n with the
-//! same number of rays as a point value: each direction draws its own point of that distribution
-//! ([`spread_starts`]) and averages T_ri along the footprint's chord through it in that
-//! direction.
+//! equations are (M + λ·S)·L = (1 + λ)·b with M_nm = Σ_p ρ w_n w_m (a 27-point stencil, 125 for
+//! the B-spline, the same for every SH coefficient), S the diagonal of S_n = Σ_p ρ w_n and
+//! b_n = Σ_p ρ w_n T_ri(p) = S_n·t̄_n, t̄_n the mean of T_ri over the distribution ρ·w_n. `single`
+//! estimates t̄_n with the same number of rays as a point value: each direction draws its own
+//! point of that distribution ([`spread_starts`]) and averages T_ri along the footprint's chord
+//! through it in that direction.
 //!
 //! Nodes whose footprint holds no density (S_n = 0) never reach a rendered sample: they keep the
 //! value they were given. The system is solved by Jacobi-preconditioned conjugate gradients.

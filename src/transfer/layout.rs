@@ -5,8 +5,10 @@
 //! contiguous.
 //!
 //! Transfer voxel `a` sits at density index point `K·a` and its footprint is the density voxels
-//! nearest to it, `round(i / K) = a`. Radiance at a density index point `p` is trilinear between the
-//! eight transfer voxels around `p / K`; the apron makes all eight exist wherever density is active.
+//! nearest to it, `round(i / K) = a`. Radiance at a density index point `p` is read from the
+//! transfer voxels around `p / K` with the transfer's [`super::Basis`]: the eight around it
+//! trilinearly, which the apron makes exist wherever density is active, or the 27 around its
+//! nearest as quadratic B-splines.
 
 use glam::{IVec3, Vec3};
 

@@ -1,9 +1,9 @@
 //! Thick transfer voxels baked finer: where a transfer voxel is more than
 //! [`REFINE_CELL_DEPTH`] optical depths across, a multiple-scattering bake takes T_ri's point
 //! values at the nodes of cells half as wide and runs the lattice over those cells, then fits
-//! both back to the transfer's own nodes ([`super::fit::fitted_from_finer`]). The cache, the
-//! relight and the march do not change: only the node values do (docs/model.md, "Thick cells,
-//! baked finer").
+//! both back to the transfer's own nodes ([`super::fit::fitted_from_finer`]) as coefficients of
+//! the quadratic B-spline ([`BASIS`]), which the march reads them with (docs/model.md, "Thick
+//! cells, baked finer" and "Reading the nodes"). The relight does not change.
 //!
 //! Why: under soft light the node values are right — against the lattice solved on every density
 //! voxel, the torus's nodes at 1.92 optical depths per transfer voxel are 2.5 % brighter in
