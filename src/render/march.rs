@@ -37,7 +37,7 @@ use crate::math::hash::hash_unit;
 use crate::render::camera::{Camera, STREAM_STEP};
 use crate::render::film::{self, Background, RayResult};
 use crate::render::relight::Radiance;
-use crate::transfer::basis::{window_index, MAX_EDGE, WINDOW};
+use crate::transfer::basis::{window_index, window_row, MAX_EDGE, WINDOW};
 use crate::transfer::{Basis, Medium, TransferLayout, PHASE};
 use crate::volume::bricks::BrickSampler;
 use crate::volume::shadow::{ShadowCursor, ShadowVolume};
@@ -420,8 +420,10 @@ impl<const L: usize> Window<L> {
     /// a basis `E` nodes wide, times `c[l]` to layer l (the first `A` layers).
     #[inline(always)]
     fn add<const E: usize, const A: usize>(&mut self, axes: &[Vec3; MAX_EDGE], c: [f32; A]) {
-        // The y–z plane's weights once, then a row of them per x: straight runs of products.
-        let mut yz = [0.0; MAX_EDGE * MAX_EDGE];
+        // The y–z plane's weights once (padded with zeros to whole lanes), then the plane times
+        // each x's weight: straight runs of four products.
+        let row = window_row(E);
+        let mut yz = [0.0; window_row(MAX_EDGE)];
         for y in 0..E {
             for z in 0..E {
                 yz[y * E + z] = axes[y].y * axes[z].z;
@@ -430,8 +432,7 @@ impl<const L: usize> Window<L> {
         for (sums, c) in self.sums.iter_mut().zip(c) {
             for x in 0..E {
                 let cx = c * axes[x].x;
-                let row = &mut sums[x * E * E..][..E * E];
-                for (s, w) in row.iter_mut().zip(&yz[..E * E]) {
+                for (s, w) in sums[x * row..][..row].iter_mut().zip(&yz[..row]) {
                     *s += cx * w;
                 }
             }
@@ -464,15 +465,18 @@ impl<const L: usize> Window<L> {
         nodes: &[[f32; N]],
         outputs: [(usize, &mut [f32; N]); M],
     ) {
-        let n = E * E * E;
+        let row = window_row(E);
         if let Some(slots) = self.slots() {
             for (layer, out) in outputs {
                 // Summed apart from `out`, which the compiler cannot tell from the sums: kept in
                 // registers, not stored back node after node.
                 let mut total = [0.0; N];
-                for (slot, s) in slots[..n].iter().zip(&self.sums[layer][..n]) {
-                    for (t, v) in total.iter_mut().zip(&nodes[*slot as usize]) {
-                        *t += s * v;
+                for x in 0..E {
+                    let plane = x * row..x * row + E * E;
+                    for (slot, s) in slots[plane.clone()].iter().zip(&self.sums[layer][plane]) {
+                        for (t, v) in total.iter_mut().zip(&nodes[*slot as usize]) {
+                            *t += s * v;
+                        }
                     }
                 }
                 for (o, t) in out.iter_mut().zip(total) {
@@ -481,7 +485,7 @@ impl<const L: usize> Window<L> {
             }
         }
         for sums in &mut self.sums {
-            sums[..n].fill(0.0);
+            sums[..E * row].fill(0.0);
         }
     }
 }

@@ -32,15 +32,20 @@ pub enum Basis {
 
 /// Most nodes a point reads along an axis, over every basis.
 pub const MAX_EDGE: usize = 3;
-/// Entries of a window of nodes ([`Basis::window`]) as the renderer keeps it: room for
-/// [`MAX_EDGE`]³, whatever the basis.
-pub const WINDOW: usize = MAX_EDGE * MAX_EDGE * MAX_EDGE;
+/// Entries of a window of nodes ([`Basis::window`]) as the renderer keeps it: [`MAX_EDGE`] planes
+/// of x, each a [`window_row`] of the y–z nodes.
+pub const WINDOW: usize = MAX_EDGE * window_row(MAX_EDGE);
 
-/// The entry of node (x, y, z) of a window `edge` nodes wide (from its lowest node): the first
-/// `edge`³ entries, x slowest.
+/// Entries of one x plane of a window `edge` nodes wide: its edge² nodes, padded to a multiple of
+/// four so that the renderer adds a step's weights to a plane four at a time.
+pub const fn window_row(edge: usize) -> usize {
+    (edge * edge).div_ceil(4) * 4
+}
+
+/// The entry of node (x, y, z) of a window `edge` nodes wide (from its lowest node).
 #[inline(always)]
 pub const fn window_index(edge: usize, x: usize, y: usize, z: usize) -> usize {
-    (x * edge + y) * edge + z
+    x * window_row(edge) + y * edge + z
 }
 
 impl Basis {
