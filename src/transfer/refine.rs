@@ -26,10 +26,12 @@ use crate::volume::SparseGrid;
 /// Mean optical depth of a transfer voxel ([`cell_optical_depth`]) above which a bake that keeps
 /// point values bakes finer. Measured against the path tracer (256×144, studio.exr, albedo 0.9,
 /// docs/accuracy.md), baking finer brings the torus / cloud at 1.92 optical depths per transfer
-/// voxel from 11.0 / 9.9 % to 7.1 / 7.3 %, and at 0.96 from 6.6 / 5.2 % to 4.8 / 3.7 %; it costs
-/// the bake 3.2× its time and 3.3× its peak on the bench cloud at σt 1.6 (8.6 per transfer voxel)
-/// and 3.7× / 3.5× on the quarter-size cloud at σt 0.2 (1.08), where the scale's time target
-/// (a fifth of `a4d4a99`'s bake) would no longer hold. 1.5 lies between 1.08 and 1.92.
+/// voxel from 11.0 / 9.9 % to 7.1 / 7.3 % (read as B-splines, [`BASIS`]: 6.4 / 4.6 %), and at 0.96
+/// from 6.6 / 5.2 % to 4.8 / 3.7 % (read trilinearly); it costs the bake 3.2× its time and 3.3×
+/// its peak on the bench cloud at σt 1.6 (8.6 per transfer voxel; 4.7× its time with the
+/// B-spline's fit back) and 3.7× / 3.5× on the quarter-size cloud at σt 0.2 (1.08), where the
+/// scale's time target (a fifth of `a4d4a99`'s bake) would no longer hold. 1.5 lies between 1.08
+/// and 1.92.
 pub const REFINE_CELL_DEPTH: f64 = 1.5;
 
 /// The share of `--samples` traced at each finer node. A finer node stands for an eighth of a
