@@ -39,6 +39,16 @@ const CORNER_OFFSETS: [usize; 8] = corner_offsets(BRICK_DIM);
 /// Values from a cell's lower corner to its upper one in a brick (the last corner offset + 1).
 const CELL_REACH: usize = BRICK_DIM * BRICK_DIM + BRICK_DIM + 2;
 
+/// Per cell of a brick (the 8³ whose lower corners lie in its block), whether any of its eight
+/// corners is above 0: bit `y·8 + z` of word `x`. A sample in a cell without one is ≤ 0, which
+/// the march treats as empty ([`BrickSampler::sample_positive`]); most of the steps the march
+/// takes inside the DDA's spans are such samples (measured on the bench cloud, 1920×1080: 11.6 M
+/// of 21.4 M), and the bit spares them the eight loads and the blend.
+type Positive = [u64; LEAF_DIM as usize];
+
+/// Bytes of one brick: its values and its cells' mask.
+const BRICK_BYTES: usize = std::mem::size_of::<Brick>() + std::mem::size_of::<Positive>();
+
 /// What a block's entry holds.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Entry {
@@ -52,6 +62,8 @@ enum Entry {
 pub struct Bricks {
     entries: KeyIndex<Entry>,
     values: Vec<Brick>,
+    /// Per brick, its cells that can sample above 0.
+    positive: Vec<Positive>,
     /// 128³ tiles (key = voxel >> 7) and their values. A block whose 2×2×2 window lies inside one
     /// is uniform without an entry of its own: a node tile holds 4096 blocks, and sending their
     /// samples to the fallback sampler doubled the T_ri phase of a tiled 300³ block.
@@ -69,6 +81,7 @@ impl Bricks {
         Bricks {
             entries: KeyIndex::new(Vec::new()),
             values: Vec::new(),
+            positive: Vec::new(),
             node_tiles: HashMap::new(),
             outside: None,
         }
@@ -93,10 +106,15 @@ impl Bricks {
         }
         let entries = KeyIndex::new(entries);
         let mut values = vec![[0.0; BRICK_VOXELS]; brick_keys.len()];
+        let mut positive = vec![[0; LEAF_DIM as usize]; brick_keys.len()];
         values
             .par_iter_mut()
+            .zip(&mut positive)
             .zip(&brick_keys)
-            .for_each(|(brick, &key)| fill(&window(grid, key), brick));
+            .for_each(|((brick, positive), &key)| {
+                fill(&window(grid, key), brick);
+                *positive = positive_cells(brick);
+            });
         let node_tiles = grid
             .tiles(TileLevel::Node)
             .map(|(origin, v)| (origin >> TileLevel::Node.log2() as i32, v))
@@ -107,6 +125,7 @@ impl Bricks {
         Bricks {
             entries,
             values,
+            positive,
             node_tiles,
             outside: (!large_tiles).then_some(grid.background),
         }
@@ -123,15 +142,15 @@ impl Bricks {
         self.node_tiles.get(&node).map(|&v| Entry::Uniform(v))
     }
 
-    /// Bytes held: the brick values and the entries' index.
+    /// Bytes held: the brick values and cell masks, and the entries' index.
     pub fn memory_bytes(&self) -> usize {
-        self.values.capacity() * std::mem::size_of::<Brick>() + self.entries.memory_bytes()
+        self.values.capacity() * BRICK_BYTES + self.entries.memory_bytes()
     }
 
     /// What [`Bricks::build`] will hold for `grid`, from its plan alone (no brick filled).
     pub fn estimate_bytes(grid: &SparseGrid) -> usize {
         let (keys, uniform) = plan(grid);
-        uniform.iter().filter(|u| u.is_none()).count() * std::mem::size_of::<Brick>()
+        uniform.iter().filter(|u| u.is_none()).count() * BRICK_BYTES
             + KeyIndex::<Entry>::bytes_for(&keys)
     }
 }
@@ -211,6 +230,27 @@ fn fill(blocks: &[Block; 8], out: &mut Brick) {
     }
 }
 
+/// Which cells of `brick` have a corner above 0 ([`Positive`]).
+fn positive_cells(brick: &Brick) -> Positive {
+    // Per row along z, its values above 0 as bits; a cell's corners are bits z and z + 1 of
+    // the rows at (x, y), (x + 1, y), (x, y + 1) and (x + 1, y + 1).
+    let mut rows = [0u16; BRICK_DIM * BRICK_DIM];
+    for (bits, row) in rows.iter_mut().zip(brick.chunks_exact(BRICK_DIM)) {
+        *bits = row
+            .iter()
+            .enumerate()
+            .fold(0, |b, (z, &v)| b | (((v > 0.0) as u16) << z));
+    }
+    let dim = LEAF_DIM as usize;
+    std::array::from_fn(|x| {
+        (0..dim).fold(0u64, |word, y| {
+            let at = |x: usize, y: usize| rows[x * BRICK_DIM + y];
+            let any = at(x, y) | at(x + 1, y) | at(x, y + 1) | at(x + 1, y + 1);
+            word | ((((any | (any >> 1)) & 0xFF) as u64) << (y * dim))
+        })
+    })
+}
+
 /// One ray's sampler over [`Bricks`]: the entry of the last block sampled is kept, so the hash
 /// lookup is paid once per block crossed.
 pub struct BrickSampler<'a> {
@@ -236,10 +276,34 @@ impl<'a> BrickSampler<'a> {
     /// instructions saving and restoring registers.
     #[inline(always)]
     pub fn sample(&mut self, p: Vec3) -> f32 {
+        self.sample_in::<false>(p)
+    }
+
+    /// The density at `p` where it can be above 0, and 0 where it cannot: equal to
+    /// [`BrickSampler::sample`] wherever that is above 0, and ≤ 0 wherever that is, read
+    /// without a load of the density in a brick's cells whose corners are all ≤ 0
+    /// ([`Positive`]). For the march, to which a density ≤ 0 is empty.
+    #[inline(always)]
+    pub fn sample_positive(&mut self, p: Vec3) -> f32 {
+        self.sample_in::<true>(p)
+    }
+
+    /// [`BrickSampler::sample`], or with `POSITIVE` [`BrickSampler::sample_positive`].
+    #[inline(always)]
+    fn sample_in<const POSITIVE: bool>(&mut self, p: Vec3) -> f32 {
         let (i0, f) = floor_split(p);
         self.look_up(i0);
         match self.entry {
-            Some(Entry::Brick(b)) => trilinear(self.brick_corners(b, i0), f),
+            Some(Entry::Brick(b)) => {
+                if POSITIVE {
+                    let l = (i0 & (LEAF_DIM - 1)).as_uvec3();
+                    let word = self.bricks.positive[b as usize][l.x as usize];
+                    if word >> (l.y * LEAF_DIM as u32 + l.z) & 1 == 0 {
+                        return 0.0;
+                    }
+                }
+                trilinear(self.brick_corners(b, i0), f)
+            }
             Some(Entry::Uniform(v)) => v,
             None => self.sample_fallback(p),
         }
@@ -392,6 +456,45 @@ mod tests {
                 assert_same(&mut sampler, &g, p);
             }
         }
+    }
+
+    #[test]
+    fn a_positive_sample_is_the_sample_wherever_that_is_above_0() {
+        // Two leaves side by side, mostly 0, with a few voxels above 0 (one on the face the
+        // upper brick's apron reads) and a few below, placed with no symmetry between the axes.
+        let mut g = SparseGrid::new(Transform::default(), 0.0);
+        for (origin, marks) in [
+            (IVec3::ZERO, [(1, 2, 7, 1.0), (7, 0, 3, 0.5), (4, 6, 0, -1.0)]),
+            (IVec3::new(8, 0, 0), [(0, 5, 1, 2.0), (3, 3, 6, -0.5), (6, 7, 2, 0.25)]),
+        ] {
+            let mut values = [0.0; LEAF_VOXELS];
+            for (x, y, z, v) in marks {
+                values[(x * 8 + y) * 8 + z] = v;
+            }
+            g.insert_leaf(origin, [u64::MAX; 8], values);
+        }
+        let bricks = Bricks::build(&g);
+        let mut sampler = BrickSampler::new(&bricks, &g);
+        let (mut zero, mut positive) = (0, 0);
+        // Every cell of the leaves and one block around them, at a point inside it off its
+        // centre.
+        for x in -8..24 {
+            for y in -8..16 {
+                for z in -8..16 {
+                    let p = IVec3::new(x, y, z).as_vec3() + Vec3::new(0.3, 0.6, 0.8);
+                    let (full, masked) = (sampler.sample(p), sampler.sample_positive(p));
+                    match full > 0.0 {
+                        true => assert_eq!(masked.to_bits(), full.to_bits(), "{p}"),
+                        false => assert!(masked <= 0.0, "{p}: {masked}"),
+                    }
+                    zero += (masked == 0.0) as u32;
+                    positive += (full > 0.0) as u32;
+                }
+            }
+        }
+        // Eight cells around each voxel above 0 (no two share one): the rest read 0 or less.
+        assert_eq!(positive, 8 * 4);
+        assert!(zero > 15_000, "{zero}");
     }
 
     #[test]
