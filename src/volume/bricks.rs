@@ -464,8 +464,14 @@ mod tests {
         // upper brick's apron reads) and a few below, placed with no symmetry between the axes.
         let mut g = SparseGrid::new(Transform::default(), 0.0);
         for (origin, marks) in [
-            (IVec3::ZERO, [(1, 2, 7, 1.0), (7, 0, 3, 0.5), (4, 6, 0, -1.0)]),
-            (IVec3::new(8, 0, 0), [(0, 5, 1, 2.0), (3, 3, 6, -0.5), (6, 7, 2, 0.25)]),
+            (
+                IVec3::ZERO,
+                [(1, 2, 7, 1.0), (7, 0, 3, 0.5), (4, 6, 0, -1.0)],
+            ),
+            (
+                IVec3::new(8, 0, 0),
+                [(0, 5, 1, 2.0), (3, 3, 6, -0.5), (6, 7, 2, 0.25)],
+            ),
         ] {
             let mut values = [0.0; LEAF_VOXELS];
             for (x, y, z, v) in marks {
