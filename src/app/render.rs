@@ -432,7 +432,7 @@ impl Job<'_> {
                     band_rows(camera.width) as usize,
                     &mut |r| {
                         let t = Instant::now();
-                        let frame = rows(r.start as u32..r.end as u32);
+                        let frame = rows(r.start as u32..r.end as u32, args.layers);
                         rendering += t.elapsed();
                         Ok(frame.into_image(args.layers))
                     },

@@ -270,6 +270,7 @@ mod tests {
             background,
             &indicatif::ProgressBar::hidden(),
             0..cam.height,
+            true,
             || (),
             |s, st: &mut PathStats, _| tracer.trace(s, st),
         );

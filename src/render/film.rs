@@ -28,8 +28,9 @@ pub fn band_rows(width: u32) -> u32 {
 }
 
 /// A frame's rows rendered on demand: rows `range` of the camera's image, as a [`Frame`] of
-/// `range.len()` rows. What a renderer hands an image writer, which asks for one band at a time.
-pub type Rows<'a> = dyn FnMut(Range<u32>) -> Frame + Send + 'a;
+/// `range.len()` rows, with its layers when `layers` is true (else their vectors are empty). What
+/// a renderer hands an image writer, which asks for one band at a time.
+pub type Rows<'a> = dyn FnMut(Range<u32>, bool) -> Frame + Send + 'a;
 
 /// The environment seen behind the volume: the radiance arriving along each world direction of
 /// a batch (`out[i]` for `dirs[i]`). A tile row's samples are looked up together, so the map's
@@ -89,23 +90,58 @@ pub struct Frame {
     pub height: u32,
     /// Linear RGB (volume + Tr·background) and alpha (1 with a background, else 1 − Tr).
     pub rgba: Vec<[f32; 4]>,
+    /// The layers, each empty in a frame rendered without them.
     pub direct: Vec<[f32; 3]>,
     pub indirect: Vec<[f32; 3]>,
     /// Opacity-weighted mean distance from the camera, world units; 0 where the ray hits nothing.
     pub depth: Vec<f32>,
 }
 
+/// A run of pixels of a frame's layers, the same pixels as a run of its `rgba`.
+struct LayerRun<'a> {
+    direct: &'a mut [[f32; 3]],
+    indirect: &'a mut [[f32; 3]],
+    depth: &'a mut [f32],
+}
+
+impl<'a> LayerRun<'a> {
+    /// Cuts `run` into `count` runs of `len` pixels (the last may be shorter); a frame without
+    /// layers (`None`) into `count` runs without.
+    fn split(run: Option<LayerRun<'a>>, len: usize, count: usize) -> Vec<Option<LayerRun<'a>>> {
+        match run {
+            None => (0..count).map(|_| None).collect(),
+            Some(r) => r
+                .direct
+                .chunks_mut(len)
+                .zip(r.indirect.chunks_mut(len))
+                .zip(r.depth.chunks_mut(len))
+                .map(|((direct, indirect), depth)| {
+                    Some(LayerRun {
+                        direct,
+                        indirect,
+                        depth,
+                    })
+                })
+                .collect(),
+        }
+    }
+}
+
 /// Renders rows `rows` of `camera`'s image (the whole frame: `0..camera.height`) with `spp`
-/// samples (at least 1) per pixel, calling `trace` for each camera ray with a per-tile statistics
+/// samples (at least 1) per pixel, with the direct, indirect and depth layers when `layers` is
+/// true (without, their vectors stay empty: 28 of a pixel's 44 bytes, faulted in and written for
+/// nothing), calling `trace` for each camera ray with a per-tile statistics
 /// accumulator and a scratch made by `scratch`, which a thread keeps across its tiles;
 /// `background` (`None`: alpha only) is added behind each ray's transmittance. `progress` counts
 /// the whole frame's tiles, advances by one per finished tile and is cleared with the last row.
+#[allow(clippy::too_many_arguments)]
 pub fn render_rows<St, Sc, F>(
     camera: &Camera,
     spp: u32,
     background: Option<Background>,
     progress: &ProgressBar,
     rows: Range<u32>,
+    layers: bool,
     scratch: impl Fn() -> Sc + Sync + Send,
     trace: F,
 ) -> (Frame, St)
@@ -118,46 +154,47 @@ where
     let (first_row, h) = (rows.start, rows.len() as u32);
     let spp = spp.max(1);
     let n = (w as usize) * (h as usize);
+    let per_layer = if layers { n } else { 0 };
     let mut frame = Frame {
         width: w,
         height: h,
         rgba: vec![[0.0; 4]; n],
-        direct: vec![[0.0; 3]; n],
-        indirect: vec![[0.0; 3]; n],
-        depth: vec![0.0; n],
+        direct: vec![[0.0; 3]; per_layer],
+        indirect: vec![[0.0; 3]; per_layer],
+        depth: vec![0.0; per_layer],
     };
     progress.set_length((w.div_ceil(TILE) * camera.height.div_ceil(TILE)) as u64);
     // Pixels go straight into the frame: each band of TILE rows is cut into the row segments of
     // its tiles, and the tiles of every band run in parallel. (Rendering tiles into buffers of
     // their own and copying them over cost a second 90 MB at 1080p, faulted in and copied.)
-    let band = (TILE * w) as usize;
-    let tile_stats: Vec<St> = frame
-        .rgba
+    let (band, width, tile) = ((TILE * w) as usize, w as usize, TILE as usize);
+    let Frame {
+        rgba,
+        direct,
+        indirect,
+        depth,
+        ..
+    } = &mut frame;
+    let layer_run = layers.then_some(LayerRun {
+        direct,
+        indirect,
+        depth,
+    });
+    let layer_bands = LayerRun::split(layer_run, band, n.div_ceil(band));
+    let tile_stats: Vec<St> = rgba
         .par_chunks_mut(band)
-        .zip(frame.direct.par_chunks_mut(band))
-        .zip(frame.indirect.par_chunks_mut(band))
-        .zip(frame.depth.par_chunks_mut(band))
+        .zip(layer_bands)
         .enumerate()
-        .flat_map(|(b, (((rgba, direct), indirect), depth))| {
-            let mut tiles: Vec<Vec<Row>> = (0..w.div_ceil(TILE)).map(|_| Vec::new()).collect();
-            let rows = rgba
-                .chunks_mut(w as usize)
-                .zip(direct.chunks_mut(w as usize))
-                .zip(indirect.chunks_mut(w as usize))
-                .zip(depth.chunks_mut(w as usize));
-            for (((rgba, direct), indirect), depth) in rows {
-                let segments = rgba
-                    .chunks_mut(TILE as usize)
-                    .zip(direct.chunks_mut(TILE as usize))
-                    .zip(indirect.chunks_mut(TILE as usize))
-                    .zip(depth.chunks_mut(TILE as usize));
-                for (tile, (((rgba, direct), indirect), depth)) in tiles.iter_mut().zip(segments) {
-                    tile.push(Row {
-                        rgba,
-                        direct,
-                        indirect,
-                        depth,
-                    });
+        .flat_map(|(b, (rgba, layers))| {
+            let tiles_across = w.div_ceil(TILE) as usize;
+            let mut tiles: Vec<Vec<Row>> = (0..tiles_across).map(|_| Vec::new()).collect();
+            let layer_rows = LayerRun::split(layers, width, rgba.len() / width);
+            for (rgba, layers) in rgba.chunks_mut(width).zip(layer_rows) {
+                let segments =
+                    rgba.chunks_mut(tile)
+                        .zip(LayerRun::split(layers, tile, tiles_across));
+                for (tile, (rgba, layers)) in tiles.iter_mut().zip(segments) {
+                    tile.push(Row { rgba, layers });
                 }
             }
             let y0 = first_row + b as u32 * TILE;
@@ -177,7 +214,7 @@ where
                 Vec::with_capacity(n),
                 Vec::with_capacity(n),
             );
-            for (dy, row) in rows.into_iter().enumerate() {
+            for (dy, mut row) in rows.into_iter().enumerate() {
                 let y = y0 + dy as u32;
                 origins.clear();
                 dirs.clear();
@@ -204,9 +241,11 @@ where
                     };
                     let p = pixel(x, y, &samples, &mut trace, &mut stats);
                     *rgba = p.rgba;
-                    row.direct[dx] = p.direct;
-                    row.indirect[dx] = p.indirect;
-                    row.depth[dx] = p.depth;
+                    if let Some(layers) = &mut row.layers {
+                        layers.direct[dx] = p.direct;
+                        layers.indirect[dx] = p.indirect;
+                        layers.depth[dx] = p.depth;
+                    }
                 }
             }
             progress.inc(1);
@@ -241,9 +280,11 @@ where
     F: Fn(CameraSample, &mut St, &mut Sc) -> RayResult + Sync,
 {
     let (mut stats, mut time) = (St::default(), Duration::ZERO);
-    let out = consume(&mut |rows| {
+    let out = consume(&mut |rows, layers| {
         let t = Instant::now();
-        let (frame, s) = render_rows(camera, spp, background, progress, rows, &scratch, &trace);
+        let (frame, s) = render_rows(
+            camera, spp, background, progress, rows, layers, &scratch, &trace,
+        );
         stats += s;
         time += t.elapsed();
         frame
@@ -254,9 +295,7 @@ where
 /// One image row's part of a tile, in the frame's buffers.
 struct Row<'a> {
     rgba: &'a mut [[f32; 4]],
-    direct: &'a mut [[f32; 3]],
-    indirect: &'a mut [[f32; 3]],
-    depth: &'a mut [f32],
+    layers: Option<LayerRun<'a>>,
 }
 
 /// One finished pixel.

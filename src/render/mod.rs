@@ -324,7 +324,7 @@ mod tests {
             &cam,
             &MarchSettings::default(),
             &indicatif::ProgressBar::hidden(),
-            |rows| rows(0..16),
+            |rows| rows(0..16, true),
         )
         .unwrap();
         assert_eq!(stats.rays, 24 * 16);

@@ -622,10 +622,14 @@ fn bands_of_rows_make_the_whole_frame() {
     let (whole, ws) = render_whole(&scene, &cam, &settings);
     let (rgba, s, _) = stream(&scene, &cam, &settings, &bar, |rows| {
         let mut rgba = Vec::new();
-        for range in [0..7, 7..40, 40..45] {
-            let band = rows(range.clone());
+        // Bands with and without their layers: the same pixels, and no layer where none was
+        // asked for.
+        for (range, layers) in [(0..7, true), (7..40, false), (40..45, true)] {
+            let band = rows(range.clone(), layers);
             assert_eq!((band.width, band.height), (20, range.len() as u32));
-            assert_eq!(band.depth.len(), 20 * range.len());
+            let pixels = if layers { 20 * range.len() } else { 0 };
+            assert_eq!(band.depth.len(), pixels);
+            assert_eq!((band.direct.len(), band.indirect.len()), (pixels, pixels));
             rgba.extend(band.rgba);
         }
         rgba
@@ -643,7 +647,7 @@ fn render_whole<S: InScatter>(
     settings: &MarchSettings,
 ) -> (Frame, MarchStats) {
     let (frame, stats, _) = stream(scene, cam, settings, &ProgressBar::hidden(), |rows| {
-        rows(0..cam.height)
+        rows(0..cam.height, true)
     });
     (frame, stats)
 }
