@@ -379,6 +379,9 @@ struct Window<const L: usize> {
     /// one, crosses the same windows, and finds their slots here instead of in the layout.
     recent: [(Option<IVec3>, Option<[u32; WINDOW]>); RECENT_WINDOWS],
     sums: [[f32; WINDOW]; L],
+    /// Whether a step has added to `sums` since they were last flushed: most rays end, and many
+    /// cross a window, without adding anything there, and flush nothing.
+    weighted: bool,
 }
 
 /// Windows a ray's sum remembers ([`Window::recent`]): a ray crosses a few, its neighbours the
@@ -392,6 +395,7 @@ impl<const L: usize> Default for Window<L> {
             current: 0,
             recent: [(None, None); RECENT_WINDOWS],
             sums: [[0.0; WINDOW]; L],
+            weighted: false,
         }
     }
 }
@@ -423,6 +427,7 @@ impl<const L: usize> Window<L> {
         // The y–z plane's weights once (padded with zeros to whole lanes), then the plane times
         // each x's weight: straight runs of four products.
         let row = window_row(E);
+        self.weighted = true;
         let mut yz = [0.0; window_row(MAX_EDGE)];
         for y in 0..E {
             for z in 0..E {
@@ -465,6 +470,9 @@ impl<const L: usize> Window<L> {
         nodes: &[[f32; N]],
         outputs: [(usize, &mut [f32; N]); M],
     ) {
+        if !std::mem::take(&mut self.weighted) {
+            return;
+        }
         let row = window_row(E);
         if let Some(slots) = self.slots() {
             for (layer, out) in outputs {
