@@ -11,8 +11,8 @@
 //!   values of the light at the node, so only a fitted transfer can use it: a bake on finer cells
 //!   ([`super::refine`]). Where a transfer voxel is optically thick the light falls or peaks
 //!   within it, a trilinear fit draws its cell faces as lines across a lit surface (the eye
-//!   finds slope jumps), and the B-spline does not (docs/accuracy.md, "Soft light: reading thick
-//!   voxels smoothly").
+//!   finds slope jumps), and the B-spline does not (docs/accuracy.md, "Soft light: thick voxels
+//!   read as quadratic B-splines").
 
 use glam::{IVec3, Vec3};
 use serde::{Deserialize, Serialize};
@@ -101,20 +101,31 @@ impl Basis {
         }
     }
 
-    /// The function of a node at `t` node spacings from it, along one axis.
-    pub fn along(self, t: f32) -> f32 {
-        let (first, weights) = self.window(Vec3::splat(t));
-        // The node is the window's node −first, if the window holds it.
-        let i = -first.x;
-        match (0..self.edge() as i32).contains(&i) {
-            true => weights[i as usize].x,
-            false => 0.0,
-        }
+    /// Per axis, the function of a node along it at `q` node spacings from the node: the
+    /// weight [`Self::window`] gives it there.
+    #[inline]
+    fn node_weights(self, q: Vec3) -> Vec3 {
+        let (first, weights) = self.window(q);
+        // The node is the window's node −first on each axis, if the window holds it.
+        Vec3::from_array(std::array::from_fn(|a| {
+            let i = -first[a];
+            match (0..self.edge() as i32).contains(&i) {
+                true => weights[i as usize][a],
+                false => 0.0,
+            }
+        }))
     }
 
-    /// The function of a node at offset `o` from it (density voxels), nodes `k` voxels apart.
+    /// The function of a node at `t` node spacings from it, along one axis.
+    pub fn along(self, t: f32) -> f32 {
+        self.node_weights(Vec3::splat(t)).x
+    }
+
+    /// The function of a node at offset `o` from it (density voxels), nodes `k` voxels apart:
+    /// the product of its function along each axis, from one window.
+    #[inline]
     pub fn at(self, o: Vec3, k: i32) -> f32 {
-        (0..3).map(|a| self.along(o[a] / k as f32)).product()
+        self.node_weights(o / k as f32).element_product()
     }
 }
 
