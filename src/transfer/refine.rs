@@ -11,7 +11,7 @@
 //! inside falls (the unscattered part) or peaks (the scattered part) within a fraction of a
 //! voxel, so interpolating point values between nodes K voxels apart is what errs: 11.0 % against
 //! the path tracer where the same nodes fitted to the finer bake's light, read where the density
-//! is, give 7.1 % (docs/accuracy.md, "Thick cells, baked finer").
+//! is, give 7.1 % (docs/accuracy.md, "Soft light: thick transfer voxels baked finer").
 //!
 //! Both layers come back through one linear fit, so at a node T_ri + F_ms is the fit of the fine
 //! nodes' totals, which in a white furnace are √(4π) + (point − the lattice's unscattered light)
