@@ -649,17 +649,6 @@ fn solve<const S: usize, const B: usize>(
             }
         }
     };
-    // Σ_s a·b·weight(s) per column.
-    let dot = |a: &[[f64; B]], b: &[[f64; B]], weight: &dyn Fn(usize) -> f64| {
-        let mut sum = [0.0; B];
-        for (s, (a, b)) in a.iter().zip(b).enumerate() {
-            let w = weight(s);
-            for ((sum, a), b) in sum.iter_mut().zip(a).zip(b) {
-                *sum += a * b * w;
-            }
-        }
-        sum
-    };
     let preconditioned = |s: usize| inverse_diagonal[s];
     // Each block of columns is read from `means` when its solve starts and written back when it
     // ends (under a lock, one block's copy), so the fit holds the blocks in flight, not a second
@@ -706,13 +695,13 @@ fn solve<const S: usize, const B: usize>(
             .enumerate()
             .map(|(s, r)| r.map(|r| r * inverse_diagonal[s]))
             .collect();
-        let mut rz = dot(&residual, &residual, &preconditioned);
+        let mut rz = dot(&residual, &residual, preconditioned);
         let mut ap = vec![[0.0; B]; n];
         // A column stops where its search runs out (p·Ap or r·z no longer positive).
         let mut running = [true; B];
         for _ in 0..CG_ITERATIONS {
             apply(&p, &mut ap);
-            let pap = dot(&p, &ap, &|_| 1.0);
+            let pap = dot(&p, &ap, |_| 1.0);
             let alpha: [f64; B] = std::array::from_fn(|l| {
                 running[l] &= pap[l] > 0.0 && rz[l] > 0.0;
                 if running[l] {
@@ -730,7 +719,7 @@ fn solve<const S: usize, const B: usize>(
                     residual[s][l] -= alpha[l] * ap[s][l];
                 }
             }
-            let rz_next = dot(&residual, &residual, &preconditioned);
+            let rz_next = dot(&residual, &residual, preconditioned);
             let beta: [f64; B] = std::array::from_fn(|l| match running[l] {
                 true => rz_next[l] / rz[l],
                 false => 0.0,
@@ -749,6 +738,19 @@ fn solve<const S: usize, const B: usize>(
             }
         }
     });
+}
+
+/// Σ_s a·b·weight(s) per column of a block.
+#[inline]
+fn dot<const B: usize>(a: &[[f64; B]], b: &[[f64; B]], weight: impl Fn(usize) -> f64) -> [f64; B] {
+    let mut sum = [0.0; B];
+    for (s, (a, b)) in a.iter().zip(b).enumerate() {
+        let w = weight(s);
+        for ((sum, a), b) in sum.iter_mut().zip(a).zip(b) {
+            *sum += a * b * w;
+        }
+    }
+    sum
 }
 
 #[cfg(test)]
